@@ -1,0 +1,177 @@
+"""Dataset generation: action and no-action pairs rendered by the simulated world.
+
+Every tuple draws its randomness from its own seed (dataset seed, tuple index, attempt), so the
+bytes written do not depend on the number of worker processes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from shared import dataset as ds
+from shared.tasks import get_task
+from shared.tasks.base import Task, World, WorldError
+
+MAX_ATTEMPTS = 3
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    task: str = "box_stacking"
+    pairs: int = 5000
+    seed: int = 0
+    image_size: int = 64
+    action_fraction: float = 0.65
+    shard_size: int = 1000
+    workers: int = min(2, os.cpu_count() or 1)
+
+    def __post_init__(self) -> None:
+        if self.pairs < 1:
+            raise ValueError(f"pairs must be at least 1, got {self.pairs}")
+        if not 0.0 <= self.action_fraction <= 1.0:
+            raise ValueError(f"action_fraction must be in [0, 1], got {self.action_fraction}")
+        if self.shard_size < 1 or self.workers < 1:
+            raise ValueError("shard_size and workers must be at least 1")
+        if self.image_size not in range(16, 1025):
+            raise ValueError(f"image_size {self.image_size} is out of range 16..1024")
+
+
+def action_flags(cfg: GenerateConfig) -> np.ndarray:
+    """Which tuples are action pairs: an exact share, in a seeded random order."""
+    flags = np.zeros(cfg.pairs, dtype=np.uint8)
+    flags[: round(cfg.action_fraction * cfg.pairs)] = 1
+    np.random.default_rng(cfg.seed).shuffle(flags)
+    return flags
+
+
+def make_tuple(task: Task, world: World, seed: int, index: int, is_action: bool) -> dict:
+    for attempt in range(MAX_ATTEMPTS):
+        rng = np.random.default_rng([seed, index, attempt])
+        try:
+            state1 = task.sample_state(rng)
+            if world.reset(state1, rng) != state1:
+                raise WorldError("settled state differs from the placed one")
+            image1 = world.render()
+            action = None
+            if is_action:
+                legal = task.legal_actions(state1)
+                action = legal[int(rng.integers(len(legal)))]
+                state2 = world.execute(action, rng)
+                if state2 != task.apply(state1, action):
+                    raise WorldError(f"executing {action} gave an unexpected state {state2}")
+            else:
+                state2 = world.reset(state1, rng)
+                if state2 != state1:
+                    raise WorldError("re-rendered state differs from the placed one")
+            return {
+                "image1": image1,
+                "image2": world.render(),
+                "a": np.uint8(is_action),
+                "u": task.action_to_array(action),
+                "state1": task.state_to_array(state1),
+                "state2": task.state_to_array(state2),
+            }
+        except WorldError as exc:
+            last = exc
+    raise WorldError(f"tuple {index}: physics failed {MAX_ATTEMPTS} times, last: {last}")
+
+
+_worker: tuple[Task, World] | None = None
+
+
+def _init_worker(task_name: str, image_size: int) -> None:
+    global _worker
+    from services.sim.worlds import make_world
+
+    _worker = (get_task(task_name), make_world(task_name, image_size))
+
+
+def _make_chunk(job: tuple[int, int, list[int]]) -> list[dict]:
+    assert _worker is not None
+    seed, start, flags = job
+    task, world = _worker
+    return [make_tuple(task, world, seed, start + i, bool(f)) for i, f in enumerate(flags)]
+
+
+def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
+    return {f: np.stack([r[f] for r in rows]) for f in ds.FIELDS}
+
+
+def generate(
+    cfg: GenerateConfig, out: Path | str, overwrite: bool = False, progress: bool = True
+) -> dict[str, Any]:
+    """Write a dataset folder; built beside `out` and moved in place only when complete."""
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(f"{out} exists and is not empty; pass overwrite to replace it")
+    get_task(cfg.task)  # fail fast on an unknown task
+    partial = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+
+    flags = action_flags(cfg)
+    chunk = 25
+    jobs = [(cfg.seed, s, flags[s : s + chunk].tolist()) for s in range(0, cfg.pairs, chunk)]
+    started = time.perf_counter()
+    shards: list[dict[str, Any]] = []
+    pending: list[dict] = []
+
+    def flush(rows: list[dict]) -> None:
+        name = ds.shard_name(len(shards))
+        sha = ds.write_shard(partial / name, _stack(rows))
+        shards.append({"file": name, "count": len(rows), "sha256": sha})
+
+    bar = tqdm(total=cfg.pairs, unit="pair", desc=f"generate {cfg.task}", disable=not progress)
+    if cfg.workers == 1:
+        _init_worker(cfg.task, cfg.image_size)
+        results = map(_make_chunk, jobs)
+        pool = None
+    else:
+        pool = mp.get_context("spawn").Pool(
+            cfg.workers, initializer=_init_worker, initargs=(cfg.task, cfg.image_size)
+        )
+        results = pool.imap(_make_chunk, jobs)
+    try:
+        for rows in results:
+            pending.extend(rows)
+            bar.update(len(rows))
+            while len(pending) >= cfg.shard_size:
+                flush(pending[: cfg.shard_size])
+                pending = pending[cfg.shard_size :]
+        if pending:
+            flush(pending)
+    finally:
+        bar.close()
+        if pool is not None:
+            pool.terminate()
+    seconds = time.perf_counter() - started
+
+    n_action = int(flags.sum())
+    manifest = {
+        "format": ds.FORMAT,
+        "version": ds.VERSION,
+        "task": cfg.task,
+        "image_size": cfg.image_size,
+        "seed": cfg.seed,
+        "counts": {
+            "tuples": cfg.pairs,
+            "action_pairs": n_action,
+            "no_action_pairs": cfg.pairs - n_action,
+        },
+        "config": {k: v for k, v in asdict(cfg).items() if k != "workers"},
+        "shards": shards,
+    }
+    ds.write_manifest(partial, manifest)
+    if out.exists():
+        shutil.rmtree(out)
+    partial.rename(out)
+    return {**manifest, "seconds": seconds, "images_per_second": 2 * cfg.pairs / seconds}

@@ -1,0 +1,139 @@
+"""On-disk dataset of (image 1, image 2, a, u, state 1, state 2) tuples, without pickle.
+
+Layout of a dataset folder:
+  manifest.json        format, version, task, image size, seed, counts, shards with sha256
+  shard-00000.npz ...  uncompressed-header zip of .npy arrays, one entry per field:
+    image1, image2  uint8  (n, H, W, 3)
+    a               uint8  (n,)     1 = action pair, 0 = no-action pair
+    u               int8   (n, *task.action_array_shape)  -1 everywhere when a = 0
+    state1, state2  int8   (n, *task.state_array_shape)
+Zip entries carry a fixed timestamp, so the same seed gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = "lsr-dataset"
+VERSION = 1
+FIELDS = ("image1", "image2", "a", "u", "state1", "state2")
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+class DatasetError(ValueError):
+    """A dataset folder that is missing, malformed or corrupted."""
+
+
+@dataclass
+class Dataset:
+    manifest: dict[str, Any]
+    image1: np.ndarray
+    image2: np.ndarray
+    a: np.ndarray
+    u: np.ndarray
+    state1: np.ndarray
+    state2: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+    @property
+    def task(self) -> str:
+        return self.manifest["task"]
+
+    @property
+    def image_size(self) -> int:
+        return self.manifest["image_size"]
+
+
+def write_shard(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """Write arrays as a deterministic .npz; returns its sha256."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as zf:
+        for name in FIELDS:
+            entry = io.BytesIO()
+            np.lib.format.write_array(entry, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, entry.getvalue())
+    data = buffer.getvalue()
+    path.write_bytes(data)
+    return hashlib.sha256(data).hexdigest()
+
+
+def read_shard(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as npz:
+        missing = [f for f in FIELDS if f not in npz.files]
+        if missing:
+            raise DatasetError(f"{path}: missing arrays {missing}")
+        return {f: npz[f] for f in FIELDS}
+
+
+def read_manifest(directory: Path | str) -> dict[str, Any]:
+    directory = Path(directory)
+    path = directory / "manifest.json"
+    if not path.is_file():
+        raise DatasetError(f"{directory}: no manifest.json, not a dataset folder")
+    try:
+        manifest = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path}: not valid JSON ({exc})") from None
+    if manifest.get("format") != FORMAT:
+        raise DatasetError(f"{path}: format {manifest.get('format')!r}, expected {FORMAT!r}")
+    if manifest.get("version") != VERSION:
+        raise DatasetError(f"{path}: version {manifest.get('version')!r}, expected {VERSION}")
+    return manifest
+
+
+def iter_shards(directory: Path | str, verify: bool = True) -> Iterator[dict[str, np.ndarray]]:
+    directory = Path(directory)
+    manifest = read_manifest(directory)
+    for shard in manifest["shards"]:
+        path = directory / shard["file"]
+        if not path.is_file():
+            raise DatasetError(f"{path}: shard listed in the manifest is missing")
+        if verify and hashlib.sha256(path.read_bytes()).hexdigest() != shard["sha256"]:
+            raise DatasetError(f"{path}: sha256 differs from the manifest, the file is corrupted")
+        arrays = read_shard(path)
+        if len(arrays["a"]) != shard["count"]:
+            raise DatasetError(f"{path}: {len(arrays['a'])} tuples, manifest says {shard['count']}")
+        yield arrays
+
+
+def load_dataset(directory: Path | str, verify: bool = True) -> Dataset:
+    manifest = read_manifest(directory)
+    parts: dict[str, list[np.ndarray]] = {f: [] for f in FIELDS}
+    for arrays in iter_shards(directory, verify=verify):
+        for f in FIELDS:
+            parts[f].append(arrays[f])
+    if not parts["a"]:
+        raise DatasetError(f"{directory}: the dataset has no shards")
+    return Dataset(manifest, **{f: np.concatenate(parts[f]) for f in FIELDS})
+
+
+def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+    (directory / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+
+
+def shard_name(index: int) -> str:
+    return f"shard-{index:05d}.npz"
+
+
+def batched(items: Iterable[Any], size: int) -> Iterator[list[Any]]:
+    batch: list[Any] = []
+    for item in items:
+        batch.append(item)
+        if len(batch) == size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch

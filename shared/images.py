@@ -1,0 +1,67 @@
+"""Image codecs and contact sheets: PNG bytes in and out, uint8 RGB arrays everywhere else."""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+
+class ImageError(ValueError):
+    """Bytes that are not a usable image; the message says why."""
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.asarray(image, dtype=np.uint8)).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def decode_image(data: bytes, size: int | None = None) -> np.ndarray:
+    """PNG/JPEG bytes -> uint8 (H, W, 3); refuses other sizes than `size` when given."""
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            if img.format not in ("PNG", "JPEG"):
+                raise ImageError(f"image format {img.format} is not PNG or JPEG")
+            if img.mode not in ("RGB", "RGBA", "L", "P"):
+                raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
+            array = np.asarray(img.convert("RGB"), dtype=np.uint8)
+    except ImageError:
+        raise
+    except Exception as exc:
+        raise ImageError(f"not a readable PNG or JPEG image ({exc})") from None
+    if size is not None and array.shape[:2] != (size, size):
+        raise ImageError(f"image is {array.shape[1]}x{array.shape[0]}, expected {size}x{size}")
+    return array
+
+
+def contact_sheet(
+    images: Sequence[np.ndarray],
+    columns: int,
+    labels: Sequence[str] | None = None,
+    scale: int = 1,
+    label_height: int = 14,
+) -> np.ndarray:
+    """Tile images in a grid, each with an optional caption underneath."""
+    if not images:
+        raise ValueError("contact_sheet needs at least one image")
+    h, w = images[0].shape[:2]
+    h, w = h * scale, w * scale
+    cell_h = h + (label_height if labels else 0)
+    rows = (len(images) + columns - 1) // columns
+    sheet = Image.new(
+        "RGB", (columns * w + (columns - 1) * 2, rows * cell_h + (rows - 1) * 2), "white"
+    )
+    draw = ImageDraw.Draw(sheet)
+    for i, image in enumerate(images):
+        r, c = divmod(i, columns)
+        x, y = c * (w + 2), r * (cell_h + 2)
+        tile = Image.fromarray(np.asarray(image, dtype=np.uint8))
+        if scale != 1:
+            tile = tile.resize((w, h), Image.Resampling.NEAREST)
+        sheet.paste(tile, (x, y))
+        if labels:
+            draw.text((x + 2, y + h + 1), labels[i], fill="black")
+    return np.asarray(sheet)

@@ -1,0 +1,21 @@
+"""Task registry: the logic of every task the project knows, by name."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from shared.tasks.base import Task, TaskError
+from shared.tasks.box_stacking import BoxStacking
+
+_TASKS: dict[str, Callable[[], Task]] = {"box_stacking": BoxStacking}
+
+
+def task_names() -> list[str]:
+    return sorted(_TASKS)
+
+
+def get_task(name: str) -> Task:
+    try:
+        return _TASKS[name]()
+    except KeyError:
+        raise TaskError(f"unknown task {name!r}; known tasks are {task_names()}") from None

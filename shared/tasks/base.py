@@ -1,0 +1,140 @@
+"""Task-agnostic interfaces: the logic of a manipulation task and the physical world that runs it.
+
+A `Task` is pure logic (states, actions, legality) that every service can use without MuJoCo.
+A `World` is the simulated physics of the same task (render, execute, read back); the sim
+service owns the implementations. A second task (cloth folding) plugs in by implementing both.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+
+State = TypeVar("State")
+Action = TypeVar("Action")
+
+
+class TaskError(ValueError):
+    """Bad input for a task; the message names what is wrong."""
+
+
+class InvalidStateError(TaskError):
+    """A state that the task cannot be in (unknown box, column too high, ...)."""
+
+
+class InvalidActionError(TaskError):
+    """An action that is malformed (missing field, out-of-range cell, ...)."""
+
+
+class IllegalActionError(TaskError):
+    """A well-formed action that breaks a rule of the task in the given state."""
+
+
+class WorldError(RuntimeError):
+    """The physical world reached something it cannot read back as a valid state."""
+
+
+class Task(ABC, Generic[State, Action]):
+    """States, actions and rules of one task, with array codecs for datasets."""
+
+    name: str
+
+    @abstractmethod
+    def info(self) -> dict[str, Any]:
+        """JSON description published by `lsr task info` and `GET /tasks/{name}`."""
+
+    # --- JSON codecs (the public interface) ---
+    @abstractmethod
+    def parse_state(self, obj: Any) -> State:
+        """Validate a JSON state; raises InvalidStateError naming what is wrong."""
+
+    @abstractmethod
+    def state_to_json(self, state: State) -> dict[str, Any]: ...
+
+    @abstractmethod
+    def parse_action(self, obj: Any) -> Action:
+        """Validate a JSON action's form; raises InvalidActionError naming the field."""
+
+    @abstractmethod
+    def action_to_json(self, action: Action) -> dict[str, Any]: ...
+
+    # --- rules ---
+    @abstractmethod
+    def check_action(self, state: State, action: Action) -> None:
+        """Raise IllegalActionError naming the broken rule, or return when legal."""
+
+    @abstractmethod
+    def legal_actions(self, state: State) -> list[Action]: ...
+
+    def apply(self, state: State, action: Action) -> State:
+        """The successor state; raises IllegalActionError for an illegal action."""
+        self.check_action(state, action)
+        return self._apply_legal(state, action)
+
+    @abstractmethod
+    def _apply_legal(self, state: State, action: Action) -> State: ...
+
+    def neighbours(self, state: State) -> list[tuple[Action, State]]:
+        return [(a, self._apply_legal(state, a)) for a in self.legal_actions(state)]
+
+    @abstractmethod
+    def sample_state(self, rng: np.random.Generator) -> State: ...
+
+    def all_states(self) -> Sequence[State] | None:
+        """Every state, for tasks small enough to enumerate; None otherwise."""
+        return None
+
+    # --- fixed-shape array codecs (datasets, evaluation) ---
+    state_array_shape: tuple[int, ...]
+    action_array_shape: tuple[int, ...]
+
+    @abstractmethod
+    def state_to_array(self, state: State) -> np.ndarray: ...
+
+    @abstractmethod
+    def array_to_state(self, array: np.ndarray) -> State: ...
+
+    @abstractmethod
+    def action_to_array(self, action: Action | None) -> np.ndarray:
+        """int array; None (no action) encodes as all -1."""
+
+    @abstractmethod
+    def array_to_action(self, array: np.ndarray) -> Action | None: ...
+
+
+class World(ABC, Generic[State, Action]):
+    """A physical instance of a task: set a state, look at it, act on it."""
+
+    task: Task[State, Action]
+    image_size: int
+
+    @abstractmethod
+    def reset(self, state: State, rng: np.random.Generator) -> State:
+        """Place the objects of `state` with in-cell noise, settle, return the read-back state."""
+
+    @abstractmethod
+    def render(self) -> np.ndarray:
+        """The current scene as uint8 (H, W, 3)."""
+
+    @abstractmethod
+    def read_state(self) -> State:
+        """The state as the physics has it now; raises WorldError when it is not valid."""
+
+    @abstractmethod
+    def execute(self, action: Action, rng: np.random.Generator) -> State:
+        """Carry out `action` physically and return the read-back state.
+
+        An illegal action raises IllegalActionError and leaves the world unchanged.
+        """
+
+    def close(self) -> None:
+        """Release rendering resources."""
+
+    def __enter__(self) -> World[State, Action]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,242 @@
+"""Box stacking (paper section VI-A): 4 distinct boxes on a grid of 3 columns x 3 levels.
+
+A state lists, per column from left to right, the box ids from the table upwards. An action
+moves the top box of one column onto the top of another column.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from shared.tasks.base import (
+    IllegalActionError,
+    InvalidActionError,
+    InvalidStateError,
+    Task,
+)
+
+Stacks = tuple[tuple[str, ...], ...]
+
+
+class Cell(NamedTuple):
+    row: int  # level counted from the table, 0 = standing on the table
+    col: int  # column, 0 = leftmost in the image
+
+
+class Move(NamedTuple):
+    pick: Cell
+    release: Cell
+
+
+@dataclass(frozen=True)
+class BoxStackingConfig:
+    boxes: tuple[str, ...] = ("red", "green", "blue", "yellow")
+    columns: int = 3
+    levels: int = 3
+
+
+@dataclass(frozen=True)
+class BoxStacking(Task[Stacks, Move]):
+    config: BoxStackingConfig = field(default_factory=BoxStackingConfig)
+    name: str = "box_stacking"
+
+    # ----- description -----
+    def info(self) -> dict[str, Any]:
+        c = self.config
+        return {
+            "task": self.name,
+            "boxes": list(c.boxes),
+            "columns": c.columns,
+            "levels": c.levels,
+            "num_states": len(self.all_states()),
+            "num_transitions": sum(len(self.legal_actions(s)) for s in self.all_states()),
+            "state_format": {"stacks": "one list per column (left to right), box ids bottom-up"},
+            "action_format": {
+                "pick": {"row": "level of the top box of the pick column", "col": "0..columns-1"},
+                "release": {"row": "current height of the release column", "col": "0..columns-1"},
+            },
+        }
+
+    @property
+    def state_array_shape(self) -> tuple[int, ...]:  # type: ignore[override]
+        return (self.config.levels, self.config.columns)
+
+    @property
+    def action_array_shape(self) -> tuple[int, ...]:  # type: ignore[override]
+        return (4,)
+
+    # ----- JSON codecs -----
+    def parse_state(self, obj: Any) -> Stacks:
+        c = self.config
+        if not isinstance(obj, dict) or "stacks" not in obj:
+            raise InvalidStateError("state: expected an object with a 'stacks' list")
+        stacks = obj["stacks"]
+        if not isinstance(stacks, list | tuple):
+            raise InvalidStateError("state.stacks: expected a list of columns")
+        if len(stacks) != c.columns:
+            raise InvalidStateError(
+                f"state.stacks: expected {c.columns} columns, got {len(stacks)}"
+            )
+        seen: set[str] = set()
+        for i, column in enumerate(stacks):
+            if not isinstance(column, list | tuple):
+                raise InvalidStateError(f"state.stacks[{i}]: expected a list of box ids")
+            if len(column) > c.levels:
+                raise InvalidStateError(
+                    f"state.stacks[{i}]: {len(column)} boxes, a column holds at most {c.levels}"
+                )
+            for j, box in enumerate(column):
+                if not isinstance(box, str) or box not in c.boxes:
+                    raise InvalidStateError(
+                        f"state.stacks[{i}][{j}]: unknown box id {box!r}; "
+                        f"known ids are {list(c.boxes)}"
+                    )
+                if box in seen:
+                    raise InvalidStateError(f"state.stacks[{i}][{j}]: box {box!r} appears twice")
+                seen.add(box)
+        missing = [b for b in c.boxes if b not in seen]
+        if missing:
+            raise InvalidStateError(f"state.stacks: missing boxes {missing}")
+        return tuple(tuple(column) for column in stacks)
+
+    def state_to_json(self, state: Stacks) -> dict[str, Any]:
+        return {"stacks": [list(column) for column in state]}
+
+    def parse_action(self, obj: Any) -> Move:
+        if not isinstance(obj, dict):
+            raise InvalidActionError("action: expected an object with 'pick' and 'release'")
+        cells = []
+        for key in ("pick", "release"):
+            cell = obj.get(key)
+            if not isinstance(cell, dict):
+                raise InvalidActionError(f"action.{key}: expected an object with 'row' and 'col'")
+            values = []
+            for coord, limit in (("row", self.config.levels), ("col", self.config.columns)):
+                v = cell.get(coord)
+                if isinstance(v, bool) or not isinstance(v, int):
+                    raise InvalidActionError(f"action.{key}.{coord}: expected an integer")
+                if not 0 <= v < limit:
+                    raise InvalidActionError(
+                        f"action.{key}.{coord}: {v} is out of range 0..{limit - 1}"
+                    )
+                values.append(v)
+            cells.append(Cell(*values))
+        return Move(*cells)
+
+    def action_to_json(self, action: Move) -> dict[str, Any]:
+        return {
+            "pick": {"row": action.pick.row, "col": action.pick.col},
+            "release": {"row": action.release.row, "col": action.release.col},
+        }
+
+    # ----- rules -----
+    def check_action(self, state: Stacks, action: Move) -> None:
+        pick, release = action
+        if pick.col == release.col:
+            raise IllegalActionError(
+                f"pick and release are in the same column {pick.col}: a move changes column"
+            )
+        height = len(state[pick.col])
+        if height == 0:
+            raise IllegalActionError(f"pick column {pick.col} is empty: nothing to pick")
+        if pick.row != height - 1:
+            raise IllegalActionError(
+                f"pick row {pick.row} is not the top of column {pick.col} (top box at row "
+                f"{height - 1}): only a box with nothing on it can be picked"
+            )
+        target = len(state[release.col])
+        if target >= self.config.levels:
+            raise IllegalActionError(
+                f"release column {release.col} is full ({target} boxes): no free cell"
+            )
+        if release.row != target:
+            raise IllegalActionError(
+                f"release row {release.row} is not the free cell of column {release.col} "
+                f"(row {target}): a box is released on the table or on top of another box"
+            )
+
+    def legal_actions(self, state: Stacks) -> list[Move]:
+        moves = []
+        for src, column in enumerate(state):
+            if not column:
+                continue
+            for dst, target in enumerate(state):
+                if dst != src and len(target) < self.config.levels:
+                    moves.append(Move(Cell(len(column) - 1, src), Cell(len(target), dst)))
+        return moves
+
+    def _apply_legal(self, state: Stacks, action: Move) -> Stacks:
+        columns = [list(column) for column in state]
+        box = columns[action.pick.col].pop()
+        columns[action.release.col].append(box)
+        return tuple(tuple(column) for column in columns)
+
+    def sample_state(self, rng: np.random.Generator) -> Stacks:
+        states = self.all_states()
+        return states[int(rng.integers(len(states)))]
+
+    def all_states(self) -> tuple[Stacks, ...]:
+        return self._all_states
+
+    @cached_property
+    def _all_states(self) -> tuple[Stacks, ...]:
+        c = self.config
+        n = len(c.boxes)
+        heights = [
+            h for h in itertools.product(range(c.levels + 1), repeat=c.columns) if sum(h) == n
+        ]
+        states = []
+        for h in heights:
+            for order in itertools.permutations(c.boxes):
+                cuts = np.cumsum((0, *h))
+                states.append(tuple(tuple(order[cuts[i] : cuts[i + 1]]) for i in range(len(h))))
+        return tuple(sorted(states))
+
+    @cached_property
+    def _state_index(self) -> dict[Stacks, int]:
+        return {s: i for i, s in enumerate(self._all_states)}
+
+    def state_index(self, state: Stacks) -> int:
+        """Position of `state` in `all_states()`: a class label for evaluation."""
+        return self._state_index[state]
+
+    # ----- array codecs -----
+    def state_to_array(self, state: Stacks) -> np.ndarray:
+        grid = np.full(self.state_array_shape, -1, dtype=np.int8)
+        for col, column in enumerate(state):
+            for row, box in enumerate(column):
+                grid[row, col] = self.config.boxes.index(box)
+        return grid
+
+    def array_to_state(self, array: np.ndarray) -> Stacks:
+        grid = np.asarray(array)
+        if grid.shape != self.state_array_shape:
+            raise InvalidStateError(f"state array: shape {grid.shape} != {self.state_array_shape}")
+        stacks = []
+        for col in range(self.config.columns):
+            column = []
+            for row in range(self.config.levels):
+                idx = int(grid[row, col])
+                if idx < 0:
+                    break
+                if idx >= len(self.config.boxes):
+                    raise InvalidStateError(f"state array: box index {idx} out of range")
+                column.append(self.config.boxes[idx])
+            stacks.append(column)
+        return self.parse_state({"stacks": stacks})
+
+    def action_to_array(self, action: Move | None) -> np.ndarray:
+        if action is None:
+            return np.full(4, -1, dtype=np.int8)
+        return np.array([*action.pick, *action.release], dtype=np.int8)
+
+    def array_to_action(self, array: np.ndarray) -> Move | None:
+        values = [int(v) for v in np.asarray(array).reshape(-1)]
+        if all(v < 0 for v in values):
+            return None
+        return Move(Cell(values[0], values[1]), Cell(values[2], values[3]))

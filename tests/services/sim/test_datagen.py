@@ -1,0 +1,88 @@
+import json
+
+import numpy as np
+import pytest
+
+from services.sim.datagen import GenerateConfig, action_flags, generate
+from shared.dataset import DatasetError, load_dataset
+from shared.tasks import get_task
+
+
+def _generate(out, **kw):
+    cfg = GenerateConfig(**{"pairs": 40, "seed": 5, "shard_size": 16, "workers": 1, **kw})
+    return generate(cfg, out, progress=False)
+
+
+def _bytes(directory):
+    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+
+
+def test_dataset_contents(tmp_path):
+    result = _generate(tmp_path / "d")
+    data = load_dataset(tmp_path / "d")
+    task = get_task("box_stacking")
+    assert len(data) == 40
+    assert result["counts"] == {"tuples": 40, "action_pairs": 26, "no_action_pairs": 14}
+    assert data.image1.shape == (40, 64, 64, 3) and data.image1.dtype == np.uint8
+    assert [s["count"] for s in data.manifest["shards"]] == [16, 16, 8]
+    for i in range(len(data)):
+        s1 = task.array_to_state(data.state1[i])
+        s2 = task.array_to_state(data.state2[i])
+        action = task.array_to_action(data.u[i])
+        if data.a[i]:
+            assert task.apply(s1, action) == s2
+        else:
+            assert action is None and s1 == s2
+            assert not np.array_equal(data.image1[i], data.image2[i])  # fresh noise
+
+
+def test_same_seed_same_bytes_any_worker_count(tmp_path):
+    _generate(tmp_path / "a")
+    _generate(tmp_path / "b", workers=2)
+    assert _bytes(tmp_path / "a") == _bytes(tmp_path / "b")
+    _generate(tmp_path / "c", seed=6)
+    assert _bytes(tmp_path / "a")["shard-00000.npz"] != _bytes(tmp_path / "c")["shard-00000.npz"]
+
+
+def test_refuses_to_overwrite(tmp_path):
+    _generate(tmp_path / "d")
+    before = _bytes(tmp_path / "d")
+    with pytest.raises(FileExistsError, match="not empty"):
+        _generate(tmp_path / "d", seed=9)
+    assert _bytes(tmp_path / "d") == before
+
+
+def test_corruption_is_detected(tmp_path):
+    _generate(tmp_path / "d", pairs=8)
+    shard = tmp_path / "d" / "shard-00000.npz"
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match="corrupted"):
+        load_dataset(tmp_path / "d")
+
+
+def test_not_a_dataset(tmp_path):
+    with pytest.raises(DatasetError, match="no manifest"):
+        load_dataset(tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "other"}))
+    with pytest.raises(DatasetError, match="format"):
+        load_dataset(tmp_path)
+
+
+def test_action_share_is_exact():
+    flags = action_flags(GenerateConfig(pairs=5000, seed=0))
+    assert flags.sum() == 3250
+
+
+@pytest.mark.parametrize(
+    ("kw", "message"),
+    [
+        ({"pairs": 0}, "pairs"),
+        ({"action_fraction": 1.5}, "action_fraction"),
+        ({"image_size": 8}, "image_size"),
+    ],
+)
+def test_bad_config(kw, message):
+    with pytest.raises(ValueError, match=message):
+        GenerateConfig(**kw)

@@ -1,0 +1,63 @@
+import json
+import subprocess
+import sys
+
+from services.cli import main
+from shared.dataset import load_dataset
+
+
+def run_lsr(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_task_info_prints_json():
+    proc = run_lsr("task", "info", "box_stacking")
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads(proc.stdout)
+    assert info["num_states"] == 288 and len(info["boxes"]) == 4
+
+
+def test_data_generate(tmp_path):
+    out = tmp_path / "data"
+    proc = run_lsr(
+        "data",
+        "generate",
+        "--task",
+        "box_stacking",
+        "--pairs",
+        "6",
+        "--seed",
+        "1",
+        "--size",
+        "32",
+        "--workers",
+        "1",
+        "--out",
+        str(out),
+    )
+    assert proc.returncode == 0, proc.stderr
+    data = load_dataset(out)
+    assert len(data) == 6 and data.image_size == 32 and data.image1.shape[1:] == (32, 32, 3)
+
+
+def test_render_rejects_an_invalid_state_clearly(tmp_path, capsys):
+    rc = main(
+        [
+            "render",
+            "--state",
+            '{"stacks": [["red"], ["red"], []]}',
+            "--out",
+            str(tmp_path / "x.png"),
+        ]
+    )
+    assert rc == 2
+    assert "appears twice" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_demo_writes_a_png(tmp_path):
+    out = tmp_path / "demo.png"
+    assert main(["demo", "--out", str(out), "--size", "48"]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
