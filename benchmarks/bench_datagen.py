@@ -33,9 +33,8 @@ def main() -> None:
         start = time.perf_counter()
         for _ in range(n):
             world.render()
-        print(
-            f"render only, 1 process, {args.size}px: {n / (time.perf_counter() - start):.0f} images/s"
-        )
+        rate = n / (time.perf_counter() - start)
+        print(f"render only, 1 process, {args.size}px: {rate:.0f} images/s")
 
     with tempfile.TemporaryDirectory() as tmp:
         cfg = GenerateConfig(pairs=args.pairs, image_size=args.size, workers=args.workers)
