@@ -96,6 +96,88 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_vae(args: argparse.Namespace) -> int:
+    from services.encoder.train import TrainConfig, dm_from_baseline, train_vae
+    from shared.dataset import load_dataset
+
+    dm: float | None = None
+    meta = {}
+    if args.dm == "auto":
+        if args.metric == "none":
+            raise ValueError("--dm auto needs a metric other than none")
+        if args.baseline is None:
+            raise ValueError("--dm auto needs --baseline DIR, a VAE trained with --metric none")
+        dm = dm_from_baseline(args.baseline, load_dataset(args.data), args.metric)
+        meta["dm_auto"] = {"baseline": str(args.baseline), "value": dm}
+        print(f"d_m from the baseline's mean action-pair distance: {dm:.3f}")
+    elif args.dm is not None:
+        dm = float(args.dm)
+    cfg = TrainConfig(
+        metric=args.metric,
+        dm=dm,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr_drop_epoch=args.lr_drop_epoch,
+        beta_max=args.beta_max,
+        seed=args.seed,
+        threads=args.threads,
+    )
+    record = train_vae(args.data, args.out, cfg, extra_meta=meta)
+    print(json.dumps(record))
+    return 0
+
+
+def cmd_train_reader(args: argparse.Namespace) -> int:
+    from services.sim.state_reader import load_reader, read_states, train_reader
+    from shared.dataset import load_dataset
+
+    meta = train_reader(load_dataset(args.data), args.out, epochs=args.epochs, seed=args.seed)
+    print(f"trained in {meta['train']['seconds']:.0f} s on {meta['train']['images']} images")
+    if args.test:
+        from services.planner.eval_vfm import test_images
+
+        images, states, _ = test_images(args.test)
+        reads = read_states(load_reader(args.out), images)
+        accuracy = 100.0 * float((reads == states).reshape(len(images), -1).all(1).mean())
+        print(json.dumps({"test_images": len(images), "state_accuracy": accuracy}))
+    return 0
+
+
+def cmd_build_roadmap(args: argparse.Namespace) -> int:
+    from services.encoder.checkpoint import read_vae_config
+    from services.planner.build import build_from_dataset, default_metric
+    from services.planner.roadmap import RoadmapConfig
+
+    metric = args.metric or default_metric(read_vae_config(args.vae))
+    config = RoadmapConfig(metric=metric, w_eps=args.w_eps, min_samples=args.min_samples)
+    summary = build_from_dataset(args.vae, args.data, config, args.out)
+    print(json.dumps(summary))
+    return 0
+
+
+def cmd_eval_vfm(args: argparse.Namespace) -> int:
+    from services.planner.eval_vfm import run_vfm_eval
+    from services.planner.evaluate import plot_class_distances
+
+    reader = args.reader or (args.model / "state_reader")
+    row, analysis = run_vfm_eval(
+        args.model,
+        args.test,
+        pairs=args.pairs,
+        seed=args.seed,
+        max_paths=args.max_paths,
+        reader_dir=reader if reader.is_dir() else None,
+        train_dir=args.train,
+    )
+    if args.figure and analysis is not None:
+        plot_class_distances({args.model.name: analysis}, args.figure)
+    if not args.json:
+        for key, value in row.items():
+            print(f"{key:>32}: {value}")
+    print(json.dumps(row))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lsr", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -118,6 +200,65 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     gen.set_defaults(handler=cmd_data_generate)
+
+    train = sub.add_parser("train", help="train models").add_subparsers(dest="sub", required=True)
+    vae = train.add_parser("vae", help="train the action-VAE (metric none = baseline VAE-b)")
+    vae.add_argument("--data", required=True, type=Path, help="training dataset folder")
+    vae.add_argument("--metric", default="l1", choices=["l1", "l2", "inf", "none"])
+    vae.add_argument("--out", required=True, type=Path)
+    vae.add_argument(
+        "--dm",
+        default=None,
+        help="action margin d_m: a number, or auto "
+        "(mean action-pair distance under --baseline); default: the paper's value",
+    )
+    vae.add_argument("--baseline", type=Path, help="VAE-b folder, for --dm auto")
+    vae.add_argument("--epochs", type=int, default=30)
+    vae.add_argument("--batch-size", type=int, default=64)
+    vae.add_argument("--lr-drop-epoch", type=int, default=20)
+    vae.add_argument("--beta-max", type=float, default=1.0)
+    vae.add_argument("--seed", type=int, default=0)
+    vae.add_argument("--threads", type=int, default=2)
+    vae.set_defaults(handler=cmd_train_vae)
+
+    reader = train.add_parser("reader", help="train the image -> state reader used by evals")
+    reader.add_argument("--data", required=True, type=Path)
+    reader.add_argument("--out", required=True, type=Path)
+    reader.add_argument("--test", type=Path, help="test set to report accuracy on")
+    reader.add_argument("--epochs", type=int, default=8)
+    reader.add_argument("--seed", type=int, default=0)
+    reader.set_defaults(handler=cmd_train_reader)
+
+    roadmap = sub.add_parser("build-roadmap", help="build the Latent Space Roadmap of a VAE")
+    roadmap.add_argument("--vae", required=True, type=Path)
+    roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
+    roadmap.add_argument("--w-eps", type=float, default=1.0)
+    roadmap.add_argument("--min-samples", type=int, default=3)
+    roadmap.add_argument(
+        "--metric",
+        choices=["l1", "l2", "inf"],
+        help="default: the VAE's training metric (l1 for the baseline)",
+    )
+    roadmap.add_argument("--out", required=True, type=Path)
+    roadmap.set_defaults(handler=cmd_build_roadmap)
+
+    evals = sub.add_parser("eval", help="evaluations").add_subparsers(dest="sub", required=True)
+    vfm = evals.add_parser("vfm", help="Table I: plans between unseen test images")
+    vfm.add_argument("--model", required=True, type=Path, help="folder with vae/ and roadmap/")
+    vfm.add_argument("--test", required=True, type=Path)
+    vfm.add_argument("--pairs", type=int, default=1000)
+    vfm.add_argument("--seed", type=int, default=0)
+    vfm.add_argument("--max-paths", type=int, default=1000)
+    vfm.add_argument("--reader", type=Path, help="default: MODEL/state_reader when present")
+    vfm.add_argument(
+        "--train",
+        type=Path,
+        help="training set for the class-distance analysis "
+        "(default: the VAE's recorded training set, when present)",
+    )
+    vfm.add_argument("--figure", type=Path, help="PNG of the class-distance analysis")
+    vfm.add_argument("--json", action="store_true", help="print only the JSON line")
+    vfm.set_defaults(handler=cmd_eval_vfm)
 
     render = sub.add_parser("render", help="render one state to a PNG")
     render.add_argument("--task", default="box_stacking", choices=task_names())

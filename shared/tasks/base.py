@@ -90,6 +90,7 @@ class Task(ABC, Generic[State, Action]):
     # --- fixed-shape array codecs (datasets, evaluation) ---
     state_array_shape: tuple[int, ...]
     action_array_shape: tuple[int, ...]
+    state_array_values: int  # elements of a state array lie in -1 (empty) .. this - 1
 
     @abstractmethod
     def state_to_array(self, state: State) -> np.ndarray: ...

@@ -67,6 +67,10 @@ class BoxStacking(Task[Stacks, Move]):
         return (self.config.levels, self.config.columns)
 
     @property
+    def state_array_values(self) -> int:  # type: ignore[override]
+        return len(self.config.boxes)
+
+    @property
     def action_array_shape(self) -> tuple[int, ...]:  # type: ignore[override]
         return (4,)
 

@@ -1,0 +1,78 @@
+"""VAE checkpoints: safetensors weights plus a JSON config, never pickle."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from services.encoder.model import VAE, VAEConfig, to_tensor, to_uint8
+
+FORMAT = "lsr-vae"
+VERSION = 1
+WEIGHTS = "vae.safetensors"
+CONFIG = "config.json"
+
+
+class CheckpointError(ValueError):
+    """A model folder that is missing or malformed."""
+
+
+def save_vae(model: VAE, directory: Path | str, meta: dict[str, Any]) -> None:
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    save_file(tensors, directory / WEIGHTS)
+    config = {"format": FORMAT, "version": VERSION, "model": model.config.to_dict(), **meta}
+    (directory / CONFIG).write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
+
+
+def read_vae_config(directory: Path | str) -> dict[str, Any]:
+    path = Path(directory) / CONFIG
+    if not path.is_file():
+        raise CheckpointError(f"{directory}: no {CONFIG}, not a VAE model folder")
+    config = json.loads(path.read_text())
+    if config.get("format") != FORMAT or config.get("version") != VERSION:
+        raise CheckpointError(f"{path}: not a {FORMAT} v{VERSION} config")
+    return config
+
+
+def load_vae(directory: Path | str) -> tuple[VAE, dict[str, Any]]:
+    config = read_vae_config(directory)
+    weights = Path(directory) / WEIGHTS
+    if not weights.is_file():
+        raise CheckpointError(f"{directory}: no {WEIGHTS}")
+    model = VAE(VAEConfig(**config["model"]))
+    state = {k: v.float() for k, v in load_file(weights).items()}
+    model.load_state_dict(state)
+    model.eval()
+    return model, config
+
+
+@torch.inference_mode()
+def encode_images(
+    model: VAE, images: np.ndarray, batch_size: int = 500
+) -> tuple[np.ndarray, np.ndarray]:
+    """uint8 (N, H, W, 3) -> encoder means and log-variances, float32 (N, latent_dim)."""
+    mus, logvars = [], []
+    for start in range(0, len(images), batch_size):
+        x = to_tensor(torch.from_numpy(np.ascontiguousarray(images[start : start + batch_size])))
+        mu, logvar = model.encode(x.contiguous(memory_format=torch.channels_last))
+        mus.append(mu.numpy())
+        logvars.append(logvar.numpy())
+    return np.concatenate(mus), np.concatenate(logvars)
+
+
+@torch.inference_mode()
+def decode_latents(model: VAE, z: np.ndarray, batch_size: int = 500) -> np.ndarray:
+    """float (N, latent_dim) -> uint8 images (N, H, W, 3)."""
+    out = []
+    for start in range(0, len(z), batch_size):
+        out.append(
+            to_uint8(model.decode(torch.from_numpy(z[start : start + batch_size]).float())).numpy()
+        )
+    return np.concatenate(out)

@@ -1,0 +1,82 @@
+"""`lsr build-roadmap`: encode a training set with a VAE and build its Latent Space Roadmap."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.encoder.checkpoint import encode_images, load_vae
+from services.planner.evaluate import NodeLabels, label_nodes
+from services.planner.roadmap import Roadmap, RoadmapConfig, build_roadmap
+from shared.dataset import Dataset, load_dataset
+from shared.tasks import get_task
+
+LABELS = "labels.json"
+
+
+def default_metric(vae_config: dict[str, Any]) -> str:
+    """The roadmap uses the metric the VAE was shaped with (L1 for the baseline)."""
+    metric = vae_config["train"]["metric"]
+    return "l1" if metric == "none" else metric
+
+
+def encode_pairs(vae_dir: Path | str, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    model, config = load_vae(vae_dir)
+    if config["model"]["image_size"] != data.image_size:
+        raise ValueError(
+            f"the VAE takes {config['model']['image_size']} px images, "
+            f"the dataset has {data.image_size} px"
+        )
+    return encode_images(model, data.image1)[0], encode_images(model, data.image2)[0]
+
+
+def interleave(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Rows in the roadmap's point order: first[0], second[0], first[1], ..."""
+    return np.stack([first, second], axis=1).reshape(-1, *first.shape[1:])
+
+
+def build_from_dataset(
+    vae_dir: Path | str, data_dir: Path | str, config: RoadmapConfig, out_dir: Path | str
+) -> dict[str, Any]:
+    started = time.perf_counter()
+    data = load_dataset(data_dir)
+    mu1, mu2 = encode_pairs(vae_dir, data)
+    encoded = time.perf_counter()
+    roadmap = build_roadmap(mu1, mu2, data.a, config)
+    built = time.perf_counter()
+    roadmap.save(out_dir)
+    labels = label_nodes(
+        roadmap.point_node, interleave(data.state1, data.state2), len(roadmap.nodes)
+    )
+    task = get_task(data.task)
+    (Path(out_dir) / LABELS).write_text(json.dumps(labels.to_json(task)) + "\n")
+    return {
+        "nodes": len(roadmap.nodes),
+        "edges": len(roadmap.edges),
+        "epsilon": roadmap.epsilon,
+        "mean_purity": float(labels.purity.mean()),
+        "pure_nodes": int((labels.purity == 1).sum()),
+        "encode_seconds": encoded - started,
+        "build_seconds": built - encoded,
+        **{k: v for k, v in roadmap.stats.items() if not isinstance(v, dict)},
+    }
+
+
+def load_labels(roadmap_dir: Path | str, task_name: str) -> NodeLabels:
+    path = Path(roadmap_dir) / LABELS
+    if not path.is_file():
+        raise ValueError(f"{roadmap_dir}: no {LABELS}; rebuild with lsr build-roadmap")
+    return NodeLabels.from_json(get_task(task_name), json.loads(path.read_text()))
+
+
+def load_model(model_dir: Path | str) -> tuple[Any, dict[str, Any], Roadmap, NodeLabels]:
+    """A model folder: vae/ and roadmap/ side by side."""
+    model_dir = Path(model_dir)
+    vae, vae_config = load_vae(model_dir / "vae")
+    roadmap = Roadmap.load(model_dir / "roadmap")
+    labels = load_labels(model_dir / "roadmap", vae_config["dataset"]["task"])
+    return vae, vae_config, roadmap, labels

@@ -1,0 +1,105 @@
+"""`lsr eval vfm`: Table I for one model folder (VAE + roadmap), with decoded-image checks."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.encoder.checkpoint import decode_latents, encode_images
+from services.planner.build import default_metric, interleave, load_model
+from services.planner.evaluate import (
+    class_distances,
+    evaluate_interpolation,
+    evaluate_plans,
+    sample_test_pairs,
+)
+from services.sim.state_reader import load_reader, read_states
+from shared.dataset import load_dataset
+
+
+def test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]:
+    """All images of a test set (both images of every tuple) with their state arrays."""
+    data = load_dataset(test_dir)
+    return interleave(data.image1, data.image2), interleave(data.state1, data.state2), data.task
+
+
+def run_vfm_eval(
+    model_dir: Path | str,
+    test_dir: Path | str,
+    pairs: int = 1000,
+    seed: int = 0,
+    max_paths: int = 1000,
+    reader_dir: Path | str | None = None,
+    train_dir: Path | str | None = None,
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """Returns the table row and, when training data is at hand, the class-distance analysis."""
+    started = time.perf_counter()
+    vae, vae_config, roadmap, labels = load_model(model_dir)
+    images, states, task_name = test_images(test_dir)
+    if images.shape[1] != vae_config["model"]["image_size"]:
+        raise ValueError(
+            f"test images are {images.shape[1]} px, the VAE takes "
+            f"{vae_config['model']['image_size']} px"
+        )
+    z_test, _ = encode_images(vae, images)
+    test_pairs = sample_test_pairs(len(images), pairs, seed)
+
+    reader = load_reader(reader_dir) if reader_dir else None
+    node_reads = None
+    if reader is not None:
+        node_reads = read_states(reader, decode_latents(vae, roadmap.nodes.astype(np.float32)))
+    row: dict[str, Any] = {
+        "model": str(model_dir),
+        "vae_metric": vae_config["train"]["metric"],
+        "roadmap_metric": roadmap.config.metric,
+        "nodes": len(roadmap.nodes),
+        "edges": len(roadmap.edges),
+        "epsilon": roadmap.epsilon,
+        "node_purity_mean": float(labels.purity.mean()),
+        "pure_nodes": int((labels.purity == 1).sum()),
+        "distinct_node_states": len({s.tobytes() for s in labels.states}),
+        **evaluate_plans(
+            task_name, roadmap, labels, z_test, states, test_pairs, max_paths, node_reads
+        ),
+    }
+    if reader is not None:
+        row["reader_on_test_renders"] = 100.0 * float(
+            (read_states(reader, images) == states).reshape(len(images), -1).all(1).mean()
+        )
+        row["interpolation"] = _interpolation(
+            vae, roadmap, reader, z_test, states, test_pairs, task_name
+        )
+    analysis = None
+    train_dir = train_dir or vae_config["dataset"]["path"]
+    if train_dir and Path(train_dir).is_dir():
+        analysis = _class_analysis(vae, train_dir, default_metric(vae_config))
+        row["mean_min_inter_minus_max_intra"] = analysis["mean_min_inter_minus_max_intra"]
+        row["classes_separated"] = analysis["classes_separated"]
+        row["classes"] = analysis["classes"]
+    row["seconds"] = time.perf_counter() - started
+    return row, analysis
+
+
+def _interpolation(vae, roadmap, reader, z_test, states, test_pairs, task_name):
+    """Straight lines in latent space with as many points as the roadmap's shortest path."""
+    nearest = np.asarray(roadmap.nearest_node(z_test))
+    reads = []
+    for i, j in test_pairs:
+        paths = roadmap.shortest_paths(int(nearest[i]), int(nearest[j]), max_paths=1)
+        n = len(paths[0]) if paths else 2
+        t = np.linspace(0.0, 1.0, n)[:, None]
+        line = (1 - t) * z_test[i] + t * z_test[j]
+        reads.append(read_states(reader, decode_latents(vae, line.astype(np.float32))))
+    return evaluate_interpolation(task_name, reads, states, test_pairs)
+
+
+def _class_analysis(vae, train_dir, metric) -> dict[str, Any]:
+    """Classes = distinct true states of the training images."""
+    data = load_dataset(train_dir)
+    z = interleave(encode_images(vae, data.image1)[0], encode_images(vae, data.image2)[0])
+    point_states = interleave(data.state1, data.state2).reshape(len(z), -1)
+    _, classes = np.unique(point_states, axis=0, return_inverse=True)
+    return class_distances(z, classes.ravel(), metric)

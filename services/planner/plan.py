@@ -1,0 +1,58 @@
+"""Planning in the roadmap: nearest nodes of start and goal, all shortest paths, images cached.
+
+This is the in-process core that the planner service and `lsr plan` wrap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.encoder.checkpoint import decode_latents, encode_images
+from services.encoder.model import VAE
+from services.planner.roadmap import Roadmap
+
+
+@dataclass(frozen=True)
+class LatentPlan:
+    nodes: list[int]  # roadmap node ids from start to goal
+    latents: np.ndarray  # (len(nodes), D) the nodes' representative latents
+
+
+class VisualPlanner:
+    """Plans between images; each node is decoded at most once, then served from the cache."""
+
+    def __init__(self, vae: VAE, roadmap: Roadmap) -> None:
+        self.vae = vae
+        self.roadmap = roadmap
+        self._images: dict[int, np.ndarray] = {}
+
+    def encode(self, images: np.ndarray) -> np.ndarray:
+        """uint8 (N, H, W, 3) -> encoder means (N, D)."""
+        size = self.vae.config.image_size
+        if images.ndim != 4 or images.shape[1:] != (size, size, 3) or images.dtype != np.uint8:
+            raise ValueError(
+                f"images must be uint8 of shape (N, {size}, {size}, 3), "
+                f"got {images.dtype} {images.shape}"
+            )
+        return encode_images(self.vae, images)[0]
+
+    def plan_latent(
+        self, z_start: np.ndarray, z_goal: np.ndarray, max_paths: int
+    ) -> list[LatentPlan]:
+        start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
+        paths = self.roadmap.shortest_paths(start, goal, max_paths=max_paths)
+        return [LatentPlan(p, self.roadmap.nodes[p]) for p in paths]
+
+    def plan(self, start: np.ndarray, goal: np.ndarray, max_paths: int = 16) -> list[LatentPlan]:
+        z = self.encode(np.stack([start, goal]))
+        return self.plan_latent(z[0], z[1], max_paths)
+
+    def node_images(self, nodes: list[int]) -> list[np.ndarray]:
+        """Decoded representatives, decoding only the nodes not seen before."""
+        missing = sorted({n for n in nodes if n not in self._images})
+        if missing:
+            decoded = decode_latents(self.vae, self.roadmap.nodes[missing].astype(np.float32))
+            self._images.update(zip(missing, decoded, strict=True))
+        return [self._images[n] for n in nodes]

@@ -1,0 +1,97 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from services.encoder.checkpoint import CheckpointError, decode_latents, encode_images, load_vae
+from services.encoder.model import VAE, VAEConfig
+from services.encoder.train import (
+    TrainConfig,
+    action_term,
+    latent_distance,
+    schedules,
+    train_vae,
+)
+from services.sim.datagen import GenerateConfig, generate
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("data") / "tiny"
+    generate(GenerateConfig(pairs=48, seed=11, image_size=32, workers=1), out, progress=False)
+    return out
+
+
+@pytest.mark.parametrize("size", [32, 64, 128])
+def test_shapes(size):
+    model = VAE(VAEConfig(image_size=size, latent_dim=8)).eval()
+    x = torch.rand(2, 3, size, size)
+    recon, mu, logvar, z = model(x)
+    assert recon.shape == x.shape and mu.shape == logvar.shape == z.shape == (2, 8)
+    assert float(recon.min()) >= 0 and float(recon.max()) <= 1
+
+
+def test_image_size_must_be_power_of_two():
+    with pytest.raises(ValueError, match="power of two"):
+        VAEConfig(image_size=48)
+
+
+def test_action_term_matches_the_paper():
+    z1 = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    z2 = torch.tensor([[3.0, 4.0], [3.0, 4.0], [30.0, 0.0]])
+    a = torch.tensor([0.0, 1.0, 1.0])
+    # no-action: d; action: max(0, dm - d); L1 distances 7, 7, 30 with dm 20
+    assert float(action_term(z1, z2, a, "l1", 20.0)) == pytest.approx((7 + 13 + 0) / 3)
+    assert float(latent_distance(z1[:1], z2[:1], "l2")) == pytest.approx(5.0)
+    assert float(latent_distance(z1[:1], z2[:1], "inf")) == pytest.approx(4.0)
+
+
+def test_schedules():
+    cfg = TrainConfig(metric="l1")
+    assert schedules(cfg, 0.0) == (0.0, 1.0)
+    assert schedules(cfg, 0.5) == (1.0, 2.0)
+    assert schedules(cfg, 1.0) == (1.0, 3.0)
+    assert schedules(TrainConfig(metric="none"), 0.7)[1] == 0.0
+    assert TrainConfig(metric="inf").d_m == 2.5 and TrainConfig(metric="l2", dm=7).d_m == 7
+
+
+def test_bad_train_config():
+    with pytest.raises(ValueError, match="metric"):
+        TrainConfig(metric="l3")
+    with pytest.raises(ValueError, match="dm"):
+        TrainConfig(dm=-1.0)
+
+
+def test_train_is_seeded_and_round_trips(tiny_data, tmp_path):
+    cfg = TrainConfig(metric="l1", epochs=2, batch_size=16, latent_dim=8, monitor_pairs=16)
+    rec_a = train_vae(tiny_data, tmp_path / "a", cfg, progress=False)
+    rec_b = train_vae(tiny_data, tmp_path / "b", cfg, progress=False)
+    assert rec_a["loss"] == rec_b["loss"]
+    lines = (tmp_path / "a" / "log.jsonl").read_text().splitlines()
+    assert [json.loads(x)["epoch"] for x in lines] == [1, 2]
+    model, config = load_vae(tmp_path / "a")
+    assert config["train"]["metric"] == "l1" and config["dataset"]["seed"] == 11
+    images = np.zeros((3, 32, 32, 3), np.uint8)
+    mu, _ = encode_images(model, images)
+    assert mu.shape == (3, 8) and np.allclose(mu[0], mu[1])
+    decoded = decode_latents(model, mu)
+    assert decoded.shape == (3, 32, 32, 3) and decoded.dtype == np.uint8
+    weights = (tmp_path / "a" / "vae.safetensors").read_bytes()
+    assert b"pickle" not in weights[:200]
+
+
+def test_baseline_trains_without_action_term(tiny_data, tmp_path):
+    cfg = TrainConfig(metric="none", epochs=1, batch_size=16, latent_dim=8, monitor_pairs=16)
+    record = train_vae(tiny_data, tmp_path / "b", cfg, progress=False)
+    assert record["action"] == 0.0 and record["gamma"] == 0.0
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="not a VAE model folder"):
+        load_vae(tmp_path)
+    (tmp_path / "config.json").write_text(
+        json.dumps({"format": "lsr-vae", "version": 1, "model": {}})
+    )
+    with pytest.raises(CheckpointError, match=r"vae\.safetensors"):
+        load_vae(tmp_path)

@@ -1,0 +1,177 @@
+"""Evaluation on a roadmap whose truth is known, and the whole CLI path on tiny models."""
+
+import json
+
+import numpy as np
+import pytest
+
+from services.cli import main
+from services.planner.build import interleave
+from services.planner.evaluate import evaluate_plans, label_nodes, sample_test_pairs
+from services.planner.roadmap import RoadmapConfig, build_roadmap
+from services.sim.datagen import GenerateConfig, generate
+from shared.tasks import get_task
+
+TASK = get_task("box_stacking")
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    """Latents that separate every state perfectly: the roadmap must give only correct plans."""
+    rng = np.random.default_rng(0)
+    states = TASK.all_states()
+    centres = rng.normal(0, 10, (len(states), 16))
+    index = {s: i for i, s in enumerate(states)}
+    z1, z2, a, s1, s2 = [], [], [], [], []
+    for _ in range(3000):
+        s = states[int(rng.integers(len(states)))]
+        moves = TASK.neighbours(s)
+        act = rng.random() < 0.65
+        t = moves[int(rng.integers(len(moves)))][1] if act else s
+        z1.append(centres[index[s]] + rng.normal(0, 0.05, 16))
+        z2.append(centres[index[t]] + rng.normal(0, 0.05, 16))
+        a.append(int(act))
+        s1.append(TASK.state_to_array(s))
+        s2.append(TASK.state_to_array(t))
+    z1, z2, a = np.array(z1), np.array(z2), np.array(a)
+    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric="l1", w_eps=1.0, min_samples=3))
+    labels = label_nodes(
+        roadmap.point_node, interleave(np.array(s1), np.array(s2)), roadmap.num_nodes
+    )
+    test_states = np.stack([TASK.state_to_array(s) for s in states])
+    z_test = centres + rng.normal(0, 0.05, centres.shape)
+    return roadmap, labels, z_test, test_states
+
+
+def test_perfect_latents_give_perfect_plans(synthetic):
+    roadmap, labels, z_test, test_states = synthetic
+    assert roadmap.num_nodes == 288 and (labels.purity == 1).all()
+    pairs = sample_test_pairs(len(z_test), 200, seed=1)
+    result = evaluate_plans("box_stacking", roadmap, labels, z_test, test_states, pairs, 50)
+    assert (result["all"], result["any"], result["trans"]) == (100.0, 100.0, 100.0)
+    reads = labels.states.copy()
+    result = evaluate_plans("box_stacking", roadmap, labels, z_test, test_states, pairs, 50, reads)
+    assert result["decoded_agreement"] == 100.0
+
+
+def test_a_wrong_node_label_is_caught(synthetic):
+    roadmap, labels, z_test, test_states = synthetic
+    swapped = type(labels)(labels.states.copy(), labels.purity, labels.members)
+    swapped.states[[0, 1]] = swapped.states[[1, 0]]
+    pairs = sample_test_pairs(len(z_test), 300, seed=2)
+    result = evaluate_plans("box_stacking", roadmap, swapped, z_test, test_states, pairs, 50)
+    assert result["any"] < 100.0 and result["trans"] < 100.0
+
+
+def test_cli_train_build_eval_on_tiny_data(tmp_path, capsys):
+    train, test = tmp_path / "train", tmp_path / "test"
+    generate(GenerateConfig(pairs=60, seed=1, image_size=32, workers=1), train, progress=False)
+    generate(GenerateConfig(pairs=10, seed=2, image_size=32, workers=1), test, progress=False)
+    model = tmp_path / "model"
+    assert (
+        main(
+            [
+                "train",
+                "vae",
+                "--data",
+                str(train),
+                "--metric",
+                "l1",
+                "--out",
+                str(model / "vae"),
+                "--epochs",
+                "1",
+                "--batch-size",
+                "30",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "train",
+                "reader",
+                "--data",
+                str(train),
+                "--out",
+                str(model / "state_reader"),
+                "--epochs",
+                "1",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "build-roadmap",
+                "--vae",
+                str(model / "vae"),
+                "--data",
+                str(train),
+                "--out",
+                str(model / "roadmap"),
+                "--min-samples",
+                "1",
+            ]
+        )
+        == 0
+    )
+    capsys.readouterr()
+    figure = tmp_path / "dist.png"
+    assert (
+        main(
+            [
+                "eval",
+                "vfm",
+                "--model",
+                str(model),
+                "--test",
+                str(test),
+                "--pairs",
+                "20",
+                "--json",
+                "--figure",
+                str(figure),
+            ]
+        )
+        == 0
+    )
+    row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in (
+        "all",
+        "any",
+        "trans",
+        "nodes",
+        "edges",
+        "decoded_agreement",
+        "interpolation",
+        "node_purity_mean",
+        "mean_min_inter_minus_max_intra",
+    ):
+        assert key in row
+    assert 0 <= row["any"] <= 100 and row["all"] <= row["any"]
+    assert figure.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_eval_rejects_a_test_set_of_another_size(tmp_path):
+    train, test = tmp_path / "train", tmp_path / "test"
+    generate(GenerateConfig(pairs=30, seed=1, image_size=32, workers=1), train, progress=False)
+    generate(GenerateConfig(pairs=4, seed=2, image_size=16, workers=1), test, progress=False)
+    model = tmp_path / "model"
+    main(["train", "vae", "--data", str(train), "--out", str(model / "vae"), "--epochs", "1"])
+    main(
+        [
+            "build-roadmap",
+            "--vae",
+            str(model / "vae"),
+            "--data",
+            str(train),
+            "--out",
+            str(model / "roadmap"),
+            "--min-samples",
+            "1",
+        ]
+    )
+    assert main(["eval", "vfm", "--model", str(model), "--test", str(test)]) == 2

@@ -1,0 +1,61 @@
+import numpy as np
+
+from services.planner.evaluate import (
+    TransitionChecker,
+    class_distances,
+    evaluate_interpolation,
+    label_nodes,
+    path_verdict,
+    sample_test_pairs,
+)
+from shared.tasks import get_task
+
+TASK = get_task("box_stacking")
+S0 = TASK.parse_state({"stacks": [["red", "green"], [], ["blue", "yellow"]]})
+S1 = TASK.parse_state({"stacks": [["red"], ["green"], ["blue", "yellow"]]})
+S2 = TASK.parse_state({"stacks": [["red"], ["green", "yellow"], ["blue"]]})
+
+
+def test_label_nodes_majority_and_purity():
+    a, b = TASK.state_to_array(S0), TASK.state_to_array(S1)
+    point_states = np.stack([a, a, b, b, b, a])
+    labels = label_nodes(np.array([0, 0, 0, 1, 1, -1]), point_states, 2)
+    assert np.array_equal(labels.states[0], a) and np.array_equal(labels.states[1], b)
+    assert labels.purity.tolist() == [2 / 3, 1.0] and labels.members.tolist() == [3, 2]
+    back = type(labels).from_json(TASK, labels.to_json(TASK))
+    assert np.array_equal(back.states, labels.states)
+
+
+def test_path_verdicts():
+    checker = TransitionChecker(TASK)
+    assert path_verdict(checker, [S0, S1, S2], S0, S2) == (True, 2, 2)
+    assert path_verdict(checker, [S0, S2], S0, S2) == (False, 0, 1)  # two moves in one step
+    assert path_verdict(checker, [S0, S1], S0, S2) == (False, 1, 1)  # wrong goal
+    assert path_verdict(checker, [S0, S0], S0, S0) == (False, 0, 1)  # standing still
+
+
+def test_interpolation_counts_unreadable_states_as_wrong():
+    states = np.stack([TASK.state_to_array(s) for s in (S0, S2)])
+    bad = np.full((3, 3), 7, np.int8)
+    good = np.stack([TASK.state_to_array(s) for s in (S0, S1, S2)])
+    result = evaluate_interpolation(
+        "box_stacking", [good, np.stack([good[0], bad, good[2]])], states, np.array([[0, 1]] * 2)
+    )
+    assert result["all"] == 50.0 and result["trans"] == 50.0
+
+
+def test_test_pairs_are_distinct_and_seeded():
+    pairs = sample_test_pairs(10, 500, seed=3)
+    assert (pairs[:, 0] != pairs[:, 1]).all() and pairs.max() < 10
+    assert np.array_equal(pairs, sample_test_pairs(10, 500, seed=3))
+
+
+def test_class_distances_separated_and_not():
+    rng = np.random.default_rng(0)
+    centres = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    classes = np.repeat(np.arange(3), 20)
+    z = centres[classes] + rng.normal(0, 0.1, (60, 2))
+    apart = class_distances(z, classes, "l1")
+    assert apart["classes_separated"] == 3 and apart["mean_min_inter_minus_max_intra"] > 9
+    mixed = class_distances(rng.normal(0, 1, (60, 2)), classes, "l2")
+    assert mixed["classes_separated"] < 3 and mixed["mean_min_inter_minus_max_intra"] < 0

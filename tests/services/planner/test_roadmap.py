@@ -1,0 +1,426 @@
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from safetensors.numpy import load_file, save_file
+from scipy.sparse.csgraph import connected_components
+
+from services.planner import roadmap as rm
+from services.planner.roadmap import (
+    Roadmap,
+    RoadmapConfig,
+    RoadmapError,
+    build_roadmap,
+    connected_regions,
+    metric_p,
+    pair_distances,
+)
+
+METRICS = ["l1", "l2", "inf"]
+REFERENCE = (
+    Path(__file__).resolve().parents[3].parent
+    / "shared/reference/data/lsr_v1_box_stacking_latents.npz"
+)
+
+
+# ------------------------------------------------------------------------------------------
+# Phase 2 against the definition
+# ------------------------------------------------------------------------------------------
+
+
+def brute_force_regions(points, eps, metric, strict=True):
+    """Algorithm 1's phase 2 by definition: components of the graph d(p, q) < eps."""
+    diff = np.abs(points[:, None, :] - points[None, :, :])
+    if metric == "l1":
+        dist = diff.sum(-1)
+    elif metric == "l2":
+        dist = np.sqrt((diff**2).sum(-1))
+    else:
+        dist = diff.max(-1)
+    _, labels = connected_components(dist < eps if strict else dist <= eps, directed=False)
+    _, first = np.unique(labels, return_index=True)
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(len(first))  # numbered by smallest point index
+    return rank[labels]
+
+
+def grid_points(seed):
+    """Points on a half-integer grid: many pairs lie at exactly eps = 0.5 or 1, in every metric."""
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 12, size=(300, 3)) * 0.5
+
+
+def clustered_points(seed):
+    """Clusters of different spread in 8-D, some touching, some chained, some not."""
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(0.0, 1.0, size=(25, 8))
+    spread = rng.uniform(0.05, 0.35, size=25)
+    cls = rng.integers(0, 25, size=500)
+    return centres[cls] + rng.normal(size=(500, 8)) * spread[cls, None]
+
+
+def chain_points():
+    """Stars joined only through members (neither leader is within eps of the other star)."""
+    line = np.array([0.0, 2.7, 0.9, 1.8, 10.0, 12.5, 11.0, 11.5])
+    return np.stack([line, np.zeros_like(line)], axis=1)
+
+
+@pytest.mark.parametrize("metric", METRICS)
+@pytest.mark.parametrize("sample", [16, None])
+def test_regions_match_brute_force(metric, sample, monkeypatch):
+    if sample is not None:  # many rounds of the coarse cover
+        monkeypatch.setattr(rm, "_COARSE_SAMPLE", sample)
+    cases = [(grid_points(1), 1.0), (grid_points(2), 0.5), (grid_points(2), 1.0)]
+    pts = clustered_points(3)
+    near = pair_distances(pts[:-1], pts[1:], metric)
+    cases += [(pts, float(np.quantile(near, q))) for q in (0.05, 0.2, 0.5)]
+    for points, eps in cases:
+        labels, info = connected_regions(points, eps, metric)
+        expected = brute_force_regions(points, eps, metric)
+        assert np.array_equal(labels, expected), (metric, eps, info)
+    # The grids have pairs at exactly eps: there '<' and '<=' give different partitions.
+    for points, eps in cases[:3]:
+        strict = brute_force_regions(points, eps, metric)
+        assert 10 < strict.max() < len(points) - 10
+        assert not np.array_equal(strict, brute_force_regions(points, eps, metric, False))
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_regions_joined_through_members(metric):
+    labels, info = connected_regions(chain_points(), 1.0, metric)
+    assert labels.tolist() == [0, 0, 0, 0, 1, 2, 3, 3]  # 10 | 11 and 11.5 | 12.5: exactly eps
+    assert info["star_joins"] >= 1  # settled by comparing members, not leaders
+    assert np.array_equal(labels, brute_force_regions(chain_points(), 1.0, metric))
+
+
+def test_regions_distance_exactly_eps_is_not_joined():
+    points = np.array([[0.0, 0.0], [3.0, 4.0], [6.0, 8.0]])
+    assert connected_regions(points, 5.0, "l2")[0].tolist() == [0, 1, 2]
+    assert connected_regions(points, np.nextafter(5.0, 6.0), "l2")[0].tolist() == [0, 0, 0]
+    assert connected_regions(points, 7.0, "l1")[0].tolist() == [0, 1, 2]
+    assert connected_regions(points, 4.0, "inf")[0].tolist() == [0, 1, 2]
+    assert connected_regions(points, 0.0, "l1")[0].tolist() == [0, 1, 2]
+    assert connected_regions(np.zeros((0, 2)), 1.0, "l1")[0].shape == (0,)
+
+
+# ------------------------------------------------------------------------------------------
+# Building on synthetic latents with a known answer
+# ------------------------------------------------------------------------------------------
+
+N_CLASSES = 20
+# Known class graph: a ring plus chords; edge k is supported by (k % 3) + 1 action pairs.
+GRAPH = sorted({(i, (i + 1) % N_CLASSES) for i in range(N_CLASSES)} | {(0, 10), (3, 15), (7, 12)})
+GRAPH = [(min(i, j), max(i, j)) for i, j in GRAPH]
+SMALL, ISOLATED, DANGLING = 20, 21, 22  # extra classes the pruning must remove
+
+
+def synthetic(seed=0):
+    """Well-separated classes in 8-D; returns z1, z2, a and each point's class."""
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(0.0, 10.0, size=(23, 8))
+    pairs = []
+    for c in range(N_CLASSES):
+        pairs += [(c, c, 0)] * 6
+    for k, (i, j) in enumerate(GRAPH):
+        for r in range(k % 3 + 1):
+            pairs.append((i, j, 1) if r % 2 == 0 else (j, i, 1))
+    pairs += [(SMALL, 5, 1)]  # 2 members: too small; its edges go with it
+    pairs += [(ISOLATED, ISOLATED, 0)] * 3  # big enough, but no action pair at all
+    pairs += [(DANGLING, DANGLING, 0)] * 2 + [(DANGLING, SMALL, 1)]  # isolated after pruning
+    order = rng.permutation(len(pairs))
+    c1, c2, a = np.array(pairs)[order].T
+    noise = np.where(np.arange(23) < N_CLASSES, 0.01, 0.0)  # the extra classes stay in one piece
+    z1 = centres[c1] + rng.normal(size=(len(a), 8)) * noise[c1, None]
+    z2 = centres[c2] + rng.normal(size=(len(a), 8)) * noise[c2, None]
+    classes = np.empty(2 * len(a), dtype=np.int64)
+    classes[0::2], classes[1::2] = c1, c2
+    return z1.astype(np.float32), z2.astype(np.float32), a.astype(np.int8), classes
+
+
+def node_of_class(roadmap, classes):
+    mapping = {}
+    for c in range(N_CLASSES):
+        nodes = set(roadmap.point_node[classes == c].tolist())
+        assert len(nodes) == 1 and -1 not in nodes, (c, nodes)
+        mapping[c] = nodes.pop()
+    assert sorted(mapping.values()) == list(range(N_CLASSES))
+    return mapping
+
+
+@pytest.mark.parametrize("metric", METRICS)
+def test_build_recovers_classes_and_graph(metric):
+    z1, z2, a, classes = synthetic()
+    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric=metric))
+    mapping = node_of_class(roadmap, classes)
+    assert roadmap.nodes.shape == (N_CLASSES, 8) and roadmap.nodes.dtype == np.float32
+    for c in (SMALL, ISOLATED, DANGLING):
+        assert (roadmap.point_node[classes == c] == -1).all()
+
+    expected = {}
+    for k, (i, j) in enumerate(GRAPH):
+        u, v = sorted((mapping[i], mapping[j]))
+        expected[(u, v)] = k % 3 + 1
+    got = dict(zip(map(tuple, roadmap.edges.tolist()), roadmap.edge_weights.tolist(), strict=True))
+    assert got == expected  # each supporting action pair counted once
+    assert roadmap.edges.dtype == np.int64 and roadmap.edges.shape == (len(GRAPH), 2)
+    assert (roadmap.edges[:, 0] < roadmap.edges[:, 1]).all()
+    assert roadmap.edges.tolist() == sorted(roadmap.edges.tolist())
+
+    stats = roadmap.stats
+    assert stats["regions_before_pruning"] == 23
+    assert stats["edges_before_pruning"] == len(GRAPH) + 2
+    assert stats["edge_weight_before_pruning"] == int(a.sum())
+    assert stats["regions_too_small"] == 1 and stats["regions_isolated"] == 2
+    assert (stats["nodes"], stats["edges"]) == (N_CLASSES, len(GRAPH))
+    assert set(stats["seconds"]) >= {"phase1", "epsilon", "phase2", "phase3", "total"}
+    json.dumps(stats)  # plain JSON types only
+
+    points = np.empty((2 * len(a), 8), dtype=np.float32)
+    points[0::2], points[1::2] = z1, z2
+    for node in range(roadmap.num_nodes):
+        members = points[roadmap.point_node == node]
+        assert roadmap.node_sizes[node] == len(members)
+        dist = pair_distances(members, np.broadcast_to(members.mean(0), members.shape), metric)
+        assert np.array_equal(roadmap.nodes[node], members[np.argmin(dist)])  # a member
+    # Nodes are numbered by the smallest point index of their region.
+    firsts = [int(np.flatnonzero(roadmap.point_node == k)[0]) for k in range(N_CLASSES)]
+    assert firsts == sorted(firsts)
+
+
+def test_build_epsilon_and_pruning_thresholds():
+    z1, z2, a, classes = synthetic()
+    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric="l2", w_eps=0.5, min_samples=1))
+    d0 = np.linalg.norm(z1[a == 0].astype(np.float64) - z2[a == 0], axis=1)
+    assert roadmap.mu0 == pytest.approx(d0.mean(), rel=1e-12)
+    assert roadmap.sigma0 == pytest.approx(d0.std(ddof=0), rel=1e-12)
+    assert roadmap.epsilon == pytest.approx(d0.mean() + 0.5 * d0.std(), rel=1e-12)
+    # min_samples 1 keeps the small class and its neighbour; the isolated class still goes.
+    assert roadmap.num_nodes == N_CLASSES + 2
+    assert (roadmap.point_node[classes == ISOLATED] == -1).all()
+    assert (roadmap.point_node[classes == SMALL] >= 0).all()
+    assert roadmap.stats["regions_isolated"] == 1
+
+
+def test_build_is_deterministic():
+    z1, z2, a, _ = synthetic(seed=4)
+    r1 = build_roadmap(z1, z2, a)
+    r2 = build_roadmap(z1, z2, a)
+    for key in rm._ARRAY_KEYS:
+        assert np.array_equal(getattr(r1, key), getattr(r2, key))
+
+
+def test_build_strict_epsilon_on_pairs():
+    # Every no-action pair is exactly 1 apart in every metric: epsilon = 1, and '<' keeps the
+    # two latents of each pair in different regions.
+    z1 = np.arange(12, dtype=np.float32).reshape(4, 3) * 8
+    z2 = z1.copy()
+    z2[:, 0] += 1
+    roadmap = build_roadmap(z1, z2, np.zeros(4, dtype=np.int8), RoadmapConfig(min_samples=1))
+    assert roadmap.epsilon == 1.0
+    assert roadmap.stats["regions_before_pruning"] == 8
+    assert roadmap.num_nodes == 0  # no action pairs: every node is isolated
+
+
+def test_build_rejects_bad_input():
+    z1, z2, a, _ = synthetic()
+    with pytest.raises(RoadmapError, match="no-action"):
+        build_roadmap(z1[a == 1], z2[a == 1], a[a == 1])
+    with pytest.raises(RoadmapError, match="shape"):
+        build_roadmap(z1, z2[:-1], a)
+    with pytest.raises(RoadmapError, match="a must"):
+        build_roadmap(z1, z2, a * 2)
+    bad = z1.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(RoadmapError, match="finite"):
+        build_roadmap(bad, z2, a)
+    for kwargs in ({"metric": "l3"}, {"w_eps": float("nan")}, {"min_samples": 0}):
+        with pytest.raises(RoadmapError):
+            RoadmapConfig(**kwargs)
+    assert issubclass(RoadmapError, ValueError)
+
+
+def test_metric_helpers():
+    assert [metric_p(m) for m in METRICS] == [1.0, 2.0, np.inf]
+    a = np.array([[0.0, 0.0], [1.0, 1.0]])
+    b = np.array([[3.0, 4.0], [1.0, 1.0]])
+    assert pair_distances(a, b, "l1").tolist() == [7.0, 0.0]
+    assert pair_distances(a, b, "l2").tolist() == [5.0, 0.0]
+    assert pair_distances(a, b, "inf").tolist() == [4.0, 0.0]
+    assert pair_distances(a[0], b[0], "l2") == 5.0
+    assert pair_distances(a, b[:1], "l1").tolist() == [7.0, 5.0]  # broadcasts
+    with pytest.raises(RoadmapError, match="broadcast"):
+        pair_distances(a, np.zeros((3, 2)), "l1")
+    with pytest.raises(RoadmapError):
+        metric_p("l0")
+
+
+# ------------------------------------------------------------------------------------------
+# Queries
+# ------------------------------------------------------------------------------------------
+
+
+def make_roadmap(nodes, edges, metric="l1"):
+    nodes = np.asarray(nodes, dtype=np.float32)
+    edges = np.asarray(sorted(edges), dtype=np.int64).reshape(-1, 2)
+    return Roadmap(
+        config=RoadmapConfig(metric=metric),
+        epsilon=1.0,
+        mu0=0.5,
+        sigma0=0.5,
+        nodes=nodes,
+        node_sizes=np.full(len(nodes), 3, dtype=np.int64),
+        edges=edges,
+        edge_weights=np.ones(len(edges), dtype=np.int64),
+        point_node=np.repeat(np.arange(len(nodes), dtype=np.int64), 3),
+    )
+
+
+def grid_roadmap(rows, cols):
+    """Node r * cols + c at (r, c), edges between 4-neighbours."""
+    nodes = [(r, c) for r in range(rows) for c in range(cols)]
+    edges = [(r * cols + c, r * cols + c + 1) for r in range(rows) for c in range(cols - 1)]
+    edges += [(r * cols + c, (r + 1) * cols + c) for r in range(rows - 1) for c in range(cols)]
+    return make_roadmap(nodes, edges)
+
+
+def test_shortest_paths_grid():
+    grid = grid_roadmap(2, 3)  # 0 1 2 / 3 4 5
+    assert grid.shortest_paths(0, 5) == [[0, 1, 2, 5], [0, 1, 4, 5], [0, 3, 4, 5]]
+    assert grid.shortest_paths(5, 0) == [[5, 2, 1, 0], [5, 4, 1, 0], [5, 4, 3, 0]]
+    assert grid.shortest_paths(0, 5, max_paths=2) == [[0, 1, 2, 5], [0, 1, 4, 5]]
+    assert grid.shortest_paths(0, 5, max_paths=1) == [[0, 1, 2, 5]]
+    assert grid.shortest_paths(4, 4) == [[4]]
+    assert grid.shortest_paths(0, 1) == [[0, 1]]
+    assert grid.neighbours(4) == [1, 3, 5]
+
+
+def test_shortest_paths_are_all_shortest_paths_in_order():
+    grid = grid_roadmap(3, 4)
+    paths = grid.shortest_paths(0, 11, max_paths=100)
+    assert len(paths) == 10  # C(5, 2) monotone lattice paths
+    assert paths == sorted(paths) and len({tuple(p) for p in paths}) == 10
+    edges = set(map(tuple, grid.edges.tolist()))
+    for path in paths:
+        assert len(path) == 6 and path[0] == 0 and path[-1] == 11
+        assert all((min(u, v), max(u, v)) in edges for u, v in itertools.pairwise(path))
+    assert grid.shortest_paths(0, 11, max_paths=4) == paths[:4]
+    assert grid.shortest_paths(0, 11, max_paths=100) == paths  # deterministic
+
+
+def test_shortest_paths_unconnected_and_errors():
+    roadmap = make_roadmap([(0, 0), (1, 0), (5, 5), (6, 5)], [(0, 1), (2, 3)])
+    assert roadmap.shortest_paths(0, 3) == []
+    assert roadmap.neighbours(2) == [3]
+    for args in ((0, 4), (-1, 0), (0, 1.5)):
+        with pytest.raises(RoadmapError):
+            roadmap.shortest_paths(*args)
+    with pytest.raises(RoadmapError, match="max_paths"):
+        roadmap.shortest_paths(0, 1, max_paths=0)
+
+
+@pytest.mark.parametrize(("metric", "expected"), [("l1", 0), ("l2", 2), ("inf", 1)])
+def test_nearest_node_uses_the_metric(metric, expected):
+    # From the origin: L1 1.0 / 1.6 / 1.25, L2 1.0 / 1.13 / 0.97, Linf 1.0 / 0.8 / 0.9.
+    roadmap = make_roadmap([(1.0, 0.0), (0.8, 0.8), (0.9, 0.35)], [(0, 1), (1, 2)], metric)
+    assert roadmap.nearest_node(np.zeros(2)) == expected
+    assert isinstance(roadmap.nearest_node(np.zeros(2)), int)
+    batch = roadmap.nearest_node(np.array([[0.0, 0.0], [0.8, 0.79], [1.0, 0.01]]))
+    assert batch.dtype == np.int64 and batch.tolist() == [expected, 1, 0]
+    with pytest.raises(RoadmapError, match="shape"):
+        roadmap.nearest_node(np.zeros(3))
+
+
+# ------------------------------------------------------------------------------------------
+# Save and load
+# ------------------------------------------------------------------------------------------
+
+
+def test_save_load_round_trip(tmp_path):
+    z1, z2, a, _ = synthetic()
+    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric="inf", w_eps=1.5))
+    roadmap.save(tmp_path / "lsr")
+    assert sorted(p.name for p in (tmp_path / "lsr").iterdir()) == [
+        "roadmap.json",
+        "roadmap.safetensors",
+    ]
+    loaded = Roadmap.load(tmp_path / "lsr")
+    assert loaded.config == roadmap.config
+    assert (loaded.epsilon, loaded.mu0, loaded.sigma0) == (
+        roadmap.epsilon,
+        roadmap.mu0,
+        roadmap.sigma0,
+    )
+    assert loaded.stats == roadmap.stats
+    for key in rm._ARRAY_KEYS:
+        want, got = getattr(roadmap, key), getattr(loaded, key)
+        assert got.dtype == want.dtype and np.array_equal(got, want), key
+    assert loaded.shortest_paths(0, 7) == roadmap.shortest_paths(0, 7)
+    assert loaded.nearest_node(z1[0]) == roadmap.nearest_node(z1[0])
+
+
+def test_load_broken_folder(tmp_path):
+    z1, z2, a, _ = synthetic()
+    good = tmp_path / "good"
+    build_roadmap(z1, z2, a).save(good)
+    meta = json.loads((good / "roadmap.json").read_text())
+    arrays = load_file(str(good / "roadmap.safetensors"))
+
+    def broken(name, meta=meta, arrays=arrays, raw_json=None):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "roadmap.json").write_text(raw_json or json.dumps(meta))
+        if arrays is not None:
+            save_file(arrays, str(folder / "roadmap.safetensors"))
+        return folder
+
+    cases = {
+        "no such roadmap folder": tmp_path / "absent",
+        "roadmap.safetensors: missing": broken("no_arrays", arrays=None),
+        "not readable JSON": broken("bad_json", raw_json="{nope"),
+        "expected format": broken("bad_format", meta={**meta, "format": "other"}),
+        "missing epsilon": broken("no_eps", meta={k: v for k, v in meta.items() if k != "epsilon"}),
+        "bad config": broken("bad_config", meta={**meta, "config": {"metric": "l7"}}),
+        "missing arrays edges": broken(
+            "no_edges", arrays={k: v for k, v in arrays.items() if k != "edges"}
+        ),
+        "edges must be pairs": broken(
+            "bad_edges", arrays={**arrays, "edges": arrays["edges"] + 100}
+        ),
+        "nodes must be a 2-D float32": broken(
+            "bad_nodes", arrays={**arrays, "nodes": arrays["nodes"].astype(np.float64)}
+        ),
+        "edge_weights must have shape": broken(
+            "bad_weights", arrays={**arrays, "edge_weights": arrays["edge_weights"][:-1]}
+        ),
+    }
+    (tmp_path / "no_json").mkdir()
+    cases["roadmap.json: missing"] = tmp_path / "no_json"
+    corrupt = broken("corrupt")
+    (corrupt / "roadmap.safetensors").write_bytes(b"\x00" * 10)
+    cases["not a readable safetensors"] = corrupt
+    for message, folder in cases.items():
+        with pytest.raises(RoadmapError, match=message):
+            Roadmap.load(folder)
+
+
+# ------------------------------------------------------------------------------------------
+# The reference release's latents (paper's box-stacking data), when present
+# ------------------------------------------------------------------------------------------
+
+
+def test_reference_latents_give_the_reference_roadmap():
+    if not REFERENCE.is_file():
+        pytest.skip(f"reference latents not found at {REFERENCE}")
+    data = np.load(REFERENCE)
+    roadmap = build_roadmap(
+        data["z1"], data["z2"], data["action"], RoadmapConfig(metric="l1", w_eps=1.0)
+    )
+    stats = roadmap.stats
+    assert roadmap.epsilon == pytest.approx(1.44686, rel=1e-4)
+    assert stats["regions_before_pruning"] == 307
+    assert stats["edges_before_pruning"] == 592
+    assert stats["edge_weight_before_pruning"] == 3229
+    assert (roadmap.num_nodes, len(roadmap.edges)) == (288, 573)
+    assert (stats["nodes"], stats["edges"]) == (288, 573)
