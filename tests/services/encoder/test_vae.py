@@ -32,6 +32,15 @@ def test_shapes(size):
     assert float(recon.min()) >= 0 and float(recon.max()) <= 1
 
 
+def test_training_step_in_channels_last_at_128():
+    """Training runs channels_last; a oneDNN crash at 128 px was seen with another model."""
+    model = VAE(VAEConfig(image_size=128, latent_dim=8)).to(memory_format=torch.channels_last)
+    x = torch.rand(2, 3, 128, 128).contiguous(memory_format=torch.channels_last)
+    recon, mu, _, _ = model(x)
+    ((recon - x).pow(2).sum() + mu.pow(2).sum()).backward()
+    assert all(p.grad is not None for p in model.parameters())
+
+
 def test_image_size_must_be_power_of_two():
     with pytest.raises(ValueError, match="power of two"):
         VAEConfig(image_size=48)

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Reproduces models/box_stacking and the Table I rows of its REPORT.md on this CPU machine.
+# Each VAE takes about 30 minutes on 2 cores; run steps one at a time if the session is short.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+LSR=.venv/bin/lsr
+DATA=data/box_stacking
+RUNS=runs
+
+[ -f $DATA/train/manifest.json ] || $LSR data generate --pairs 5000 --seed 0 --size 64 --out $DATA/train
+[ -f $DATA/test/manifest.json ] || $LSR data generate --pairs 1250 --seed 1 --size 64 --out $DATA/test
+[ -f $RUNS/state_reader/config.json ] || \
+  $LSR train reader --data $DATA/train --test $DATA/test --out $RUNS/state_reader
+
+for metric in l1 none l2 inf; do
+  name=vae_$metric
+  [ -f $RUNS/$name/vae/config.json ] || \
+    $LSR train vae --data $DATA/train --metric $metric --epochs 30 --seed 0 --out $RUNS/$name/vae
+  $LSR build-roadmap --vae $RUNS/$name/vae --data $DATA/train --w-eps 1 --min-samples 3 \
+    --out $RUNS/$name/roadmap
+  $LSR eval vfm --model $RUNS/$name --test $DATA/test --pairs 1000 --seed 0 \
+    --reader $RUNS/state_reader --figure $RUNS/$name/class_distances.png --json \
+    | tail -n 1 > $RUNS/$name/table1.json
+done
