@@ -178,6 +178,94 @@ def cmd_eval_vfm(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_apn(args: argparse.Namespace) -> int:
+    from services.apn.train import APNTrainConfig, train_apn
+
+    cfg = APNTrainConfig(head=args.head, epochs=args.epochs, samples=args.samples, seed=args.seed)
+    meta = train_apn(args.vae, args.data, args.out, cfg)
+    print(json.dumps({"best": meta["best"], "pairs": meta["pairs"], "seconds": meta["seconds"]}))
+    return 0
+
+
+def cmd_eval_apn(args: argparse.Namespace) -> int:
+    from services.apn.train import evaluate_apn
+
+    result = evaluate_apn(args.apn or args.model / "apn", args.model / "vae", args.test)
+    if not args.json:
+        for key, value in result.items():
+            print(f"{key:>20}: {value}")
+    print(json.dumps(result))
+    return 0
+
+
+def _image_or_state(task, world, image: Path | None, state: str | None, rng, name: str):
+    """A start or goal given as a PNG/JPEG file or as a state rendered by the sim."""
+    from shared.images import decode_image
+
+    if (image is None) == (state is None):
+        raise ValueError(f"give exactly one of --{name}-image and --{name}-state")
+    if image is not None:
+        return decode_image(Path(image).read_bytes(), size=world.image_size), None
+    parsed = task.parse_state(_json_arg(state))
+    world.reset(parsed, rng)
+    return world.render(), parsed
+
+
+def _single_thread_torch() -> None:
+    """Plans run batches of a few images: one thread beats two that spin-wait on each other."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    import numpy as np
+    from PIL import Image
+
+    from services.planner.action_plans import ActionPlanner
+    from services.planner.sheets import plan_sheet
+    from services.sim.worlds import make_world
+
+    _single_thread_torch()
+    planner = ActionPlanner.from_model_dir(args.model)
+    rng = np.random.default_rng(args.seed)
+    with make_world(planner.task.name, planner.image_size) as world:
+        start, _ = _image_or_state(
+            planner.task, world, args.start_image, args.start_state, rng, "start"
+        )
+        goal, _ = _image_or_state(
+            planner.task, world, args.goal_image, args.goal_state, rng, "goal"
+        )
+        plans = planner.plan(start, goal, max_plans=args.max_plans)
+        args.out.mkdir(parents=True, exist_ok=True)
+        for k, plan in enumerate(plans):
+            Image.fromarray(plan_sheet(plan, world.cell_pixel)).save(args.out / f"plan_{k}.png")
+    summary = {"plans": [p.to_json(planner.task) for p in plans]}
+    if not plans:
+        summary["reason"] = "start and goal are not connected in the roadmap"
+    (args.out / "plans.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"{len(plans)} plan(s) written to {args.out}")
+    return 0
+
+
+def cmd_eval_system(args: argparse.Namespace) -> int:
+    from services.planner.action_plans import ActionPlanner
+    from services.sim.closed_loop import evaluate_system
+    from services.sim.worlds import make_world
+
+    _single_thread_torch()
+    planner = ActionPlanner.from_model_dir(args.model)
+    with make_world(planner.task.name, planner.image_size) as world:
+        result = evaluate_system(
+            planner, world, planner.task, args.pairs, seed=args.seed, max_steps=args.max_steps
+        )
+    if not args.json:
+        for key, value in result.items():
+            print(f"{key:>20}: {value}")
+    print(json.dumps(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lsr", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -229,6 +317,16 @@ def build_parser() -> argparse.ArgumentParser:
     reader.add_argument("--seed", type=int, default=0)
     reader.set_defaults(handler=cmd_train_reader)
 
+    apn = train.add_parser("apn", help="train the Action Proposal Network on a VAE's latents")
+    apn.add_argument("--vae", required=True, type=Path)
+    apn.add_argument("--data", required=True, type=Path)
+    apn.add_argument("--out", required=True, type=Path)
+    apn.add_argument("--head", default="classify", choices=["classify", "regress"])
+    apn.add_argument("--epochs", type=int, default=200)
+    apn.add_argument("--samples", type=int, default=1, help="S draws from q(z|I) per pair")
+    apn.add_argument("--seed", type=int, default=0)
+    apn.set_defaults(handler=cmd_train_apn)
+
     roadmap = sub.add_parser("build-roadmap", help="build the Latent Space Roadmap of a VAE")
     roadmap.add_argument("--vae", required=True, type=Path)
     roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
@@ -259,6 +357,32 @@ def build_parser() -> argparse.ArgumentParser:
     vfm.add_argument("--figure", type=Path, help="PNG of the class-distance analysis")
     vfm.add_argument("--json", action="store_true", help="print only the JSON line")
     vfm.set_defaults(handler=cmd_eval_vfm)
+
+    eapn = evals.add_parser("apn", help="APN accuracy on unseen action pairs")
+    eapn.add_argument("--model", required=True, type=Path, help="folder with vae/ and apn/")
+    eapn.add_argument("--apn", type=Path, help="APN folder (default: MODEL/apn)")
+    eapn.add_argument("--test", required=True, type=Path)
+    eapn.add_argument("--json", action="store_true")
+    eapn.set_defaults(handler=cmd_eval_apn)
+
+    system = evals.add_parser("system", help="closed-loop execution in simulation")
+    system.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    system.add_argument("--pairs", type=int, default=1000)
+    system.add_argument("--seed", type=int, default=0)
+    system.add_argument("--max-steps", type=int, default=20)
+    system.add_argument("--json", action="store_true")
+    system.set_defaults(handler=cmd_eval_system)
+
+    plan = sub.add_parser("plan", help="visual action plans from a start to a goal")
+    plan.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    plan.add_argument("--start-state", help="state JSON, inline or a file path")
+    plan.add_argument("--start-image", type=Path, help="PNG or JPEG of the start")
+    plan.add_argument("--goal-state", help="state JSON, inline or a file path")
+    plan.add_argument("--goal-image", type=Path, help="PNG or JPEG of the goal")
+    plan.add_argument("--max-plans", type=int, default=4)
+    plan.add_argument("--seed", type=int, default=0, help="noise of rendered states")
+    plan.add_argument("--out", required=True, type=Path)
+    plan.set_defaults(handler=cmd_plan)
 
     render = sub.add_parser("render", help="render one state to a PNG")
     render.add_argument("--task", default="box_stacking", choices=task_names())

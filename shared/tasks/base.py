@@ -91,6 +91,7 @@ class Task(ABC, Generic[State, Action]):
     state_array_shape: tuple[int, ...]
     action_array_shape: tuple[int, ...]
     state_array_values: int  # elements of a state array lie in -1 (empty) .. this - 1
+    action_array_sizes: tuple[int, ...]  # element i of an action array lies in 0 .. sizes[i] - 1
 
     @abstractmethod
     def state_to_array(self, state: State) -> np.ndarray: ...

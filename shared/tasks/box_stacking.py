@@ -71,6 +71,11 @@ class BoxStacking(Task[Stacks, Move]):
         return len(self.config.boxes)
 
     @property
+    def action_array_sizes(self) -> tuple[int, ...]:  # type: ignore[override]
+        c = self.config
+        return (c.levels, c.columns, c.levels, c.columns)
+
+    @property
     def action_array_shape(self) -> tuple[int, ...]:  # type: ignore[override]
         return (4,)
 

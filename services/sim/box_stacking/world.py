@@ -138,5 +138,16 @@ class BoxStackingWorld(World[Stacks, Move]):
             self.data.mocap_pos[self._mocap] = a + t * (b - a)
             mujoco.mj_step(self.model, self.data)
 
+    def cell_pixel(self, row: int, col: int) -> tuple[float, float]:
+        """Where the centre of a grid cell appears in the image (x right, y down, pixels)."""
+        cam = self.model.camera("front")
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+        point = np.array([self._column_x[col], 0.0, self.geometry.level_z(row)])
+        rotation = self.data.cam_xmat[cam.id].reshape(3, 3)
+        x, y, z = rotation.T @ (point - self.data.cam_xpos[cam.id])
+        focal = self.image_size / 2 / np.tan(np.deg2rad(self.model.cam_fovy[cam.id]) / 2)
+        return self.image_size / 2 + focal * x / -z, self.image_size / 2 - focal * y / -z
+
     def close(self) -> None:
         self.camera.close()

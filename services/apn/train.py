@@ -1,0 +1,171 @@
+"""Training and evaluation of the APN on the latent action pairs of a dataset (paper V)."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from services.apn.model import APN, APNConfig, Head
+from services.encoder.checkpoint import encode_images, load_vae
+from shared.dataset import load_dataset
+from shared.tasks import get_task
+
+FORMAT = "lsr-apn"
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class APNTrainConfig:
+    head: Head = "classify"
+    epochs: int = 200
+    batch_size: int = 64
+    lr: float = 1e-2
+    lr_drops: tuple[int, ...] = (50, 150)  # lr / 10 from each of these epochs
+    samples: int = 1  # S: draws from q(z|I) added beside the means
+    val_fraction: float = 0.2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.val_fraction < 1:
+            raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
+        if self.epochs < 1 or self.samples < 0:
+            raise ValueError("epochs must be >= 1 and samples >= 0")
+
+
+def action_pair_latents(vae_dir: Path | str, data_dir: Path | str):
+    """Encoder means and log-variances of the action pairs, with their action arrays."""
+    model, _ = load_vae(vae_dir)
+    data = load_dataset(data_dir)
+    act = data.a == 1
+    mu1, lv1 = encode_images(model, data.image1[act])
+    mu2, lv2 = encode_images(model, data.image2[act])
+    return data.task, mu1, lv1, mu2, lv2, data.u[act].astype(np.int64)
+
+
+def _enlarge(mu1, lv1, mu2, lv2, u, samples: int, rng: np.random.Generator):
+    """The means plus `samples` reparameterised draws of every pair (paper: S = 1)."""
+    z1, z2 = [mu1], [mu2]
+    for _ in range(samples):
+        z1.append(mu1 + rng.standard_normal(mu1.shape).astype(np.float32) * np.exp(0.5 * lv1))
+        z2.append(mu2 + rng.standard_normal(mu2.shape).astype(np.float32) * np.exp(0.5 * lv2))
+    reps = samples + 1
+    return (
+        torch.from_numpy(np.concatenate(z1)),
+        torch.from_numpy(np.concatenate(z2)),
+        torch.from_numpy(np.tile(u, (reps, 1))),
+    )
+
+
+def train_apn(
+    vae_dir: Path | str,
+    data_dir: Path | str,
+    out_dir: Path | str,
+    cfg: APNTrainConfig,
+    progress: bool = True,
+) -> dict[str, Any]:
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    task_name, mu1, lv1, mu2, lv2, u = action_pair_latents(vae_dir, data_dir)
+    task = get_task(task_name)
+    order = rng.permutation(len(u))
+    n_val = max(1, round(cfg.val_fraction * len(u)))
+    val, train = order[:n_val], order[n_val:]  # split pairs first: no pair on both sides
+    tr = _enlarge(mu1[train], lv1[train], mu2[train], lv2[train], u[train], cfg.samples, rng)
+    va = _enlarge(mu1[val], lv1[val], mu2[val], lv2[val], u[val], cfg.samples, rng)
+
+    model = APN(
+        APNConfig(latent_dim=mu1.shape[1], action_sizes=task.action_array_sizes, head=cfg.head)
+    )
+    optimiser = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    best: dict[str, Any] = {"val_loss": float("inf")}
+    best_state: dict[str, torch.Tensor] = {}
+    log = []
+    started = time.perf_counter()
+    for epoch in tqdm(range(cfg.epochs), desc=f"train apn-{cfg.head}", disable=not progress):
+        lr = cfg.lr / 10 ** sum(epoch >= d for d in cfg.lr_drops)
+        for group in optimiser.param_groups:
+            group["lr"] = lr
+        model.train()
+        for idx in torch.randperm(len(tr[2]), generator=generator).split(cfg.batch_size):
+            loss = model.loss(model(tr[0][idx], tr[1][idx]), tr[2][idx])
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            optimiser.step()
+        model.eval()
+        with torch.no_grad():
+            output = model(va[0], va[1])
+            val_loss = model.loss(output, va[2]).item()
+            both = (model.predict(output)[0] == va[2]).all(-1).float().mean().item()
+        record = {"epoch": epoch + 1, "lr": lr, "val_loss": val_loss, "val_both": 100 * both}
+        log.append(record)
+        if val_loss < best["val_loss"]:
+            best = record
+            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    (out_dir / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
+    save_file(best_state, out_dir / "apn.safetensors")
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "model": model.config.to_dict(),
+        "train": asdict(cfg),
+        "vae": str(vae_dir),
+        "dataset": str(data_dir),
+        "task": task_name,
+        "pairs": {"train": len(train), "val": len(val), "train_samples": len(tr[2])},
+        "best": best,
+        "seconds": time.perf_counter() - started,
+    }
+    (out_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return meta
+
+
+def load_apn(directory: Path | str) -> tuple[APN, dict[str, Any]]:
+    directory = Path(directory)
+    path = directory / "config.json"
+    if not path.is_file():
+        raise ValueError(f"{directory}: no config.json, not an APN folder")
+    meta = json.loads(path.read_text())
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise ValueError(f"{path}: not a {FORMAT} v{VERSION} config")
+    config = meta["model"] | {"action_sizes": tuple(meta["model"]["action_sizes"])}
+    model = APN(APNConfig(**config))
+    model.load_state_dict(load_file(directory / "apn.safetensors"))
+    return model.eval(), meta
+
+
+@torch.inference_mode()
+def propose(model: APN, z1: np.ndarray, z2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Action arrays and confidences for latent pairs (N, D) -> (N, A), (N,)."""
+    action, confidence = model.predict(
+        model(torch.from_numpy(z1).float(), torch.from_numpy(z2).float())
+    )
+    return action.numpy(), confidence.numpy()
+
+
+def evaluate_apn(apn_dir: Path | str, vae_dir: Path | str, test_dir: Path | str) -> dict:
+    """Pick, release and both-correct accuracy on the unseen action pairs (encoder means)."""
+    model, meta = load_apn(apn_dir)
+    _, mu1, _, mu2, _, u = action_pair_latents(vae_dir, test_dir)
+    predicted, _ = propose(model, mu1, mu2)
+    half = u.shape[1] // 2
+    pick = (predicted[:, :half] == u[:, :half]).all(1)
+    release = (predicted[:, half:] == u[:, half:]).all(1)
+    return {
+        "apn": str(apn_dir),
+        "head": meta["model"]["head"],
+        "test_action_pairs": len(u),
+        "pick": 100.0 * pick.mean(),
+        "release": 100.0 * release.mean(),
+        "both": 100.0 * (pick & release).mean(),
+    }

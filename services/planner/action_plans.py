@@ -1,0 +1,86 @@
+"""Visual action plans: roadmap paths with decoded images and the APN's action for each step."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.apn.model import APN
+from services.apn.train import load_apn, propose
+from services.encoder.checkpoint import load_vae
+from services.planner.plan import VisualPlanner
+from services.planner.roadmap import Roadmap
+from shared.tasks import get_task
+from shared.tasks.base import Task
+
+
+@dataclass
+class VisualActionPlan:
+    nodes: list[int]  # roadmap node ids, start to goal
+    images: list[np.ndarray]  # decoded node images, one more than actions
+    actions: list[Any]  # the task's actions between consecutive images
+    confidences: list[float]  # the APN's confidence in each action
+
+    def to_json(self, task: Task) -> dict[str, Any]:
+        return {
+            "nodes": self.nodes,
+            "actions": [task.action_to_json(a) for a in self.actions],
+            "confidences": [round(c, 6) for c in self.confidences],
+        }
+
+
+class ActionPlanner:
+    """Encoder + roadmap + APN in one process: images in, visual action plans out."""
+
+    def __init__(self, task: Task, planner: VisualPlanner, apn: APN) -> None:
+        self.task = task
+        self.planner = planner
+        self.apn = apn
+
+    @classmethod
+    def from_model_dir(cls, model_dir: Path | str) -> ActionPlanner:
+        """A model folder with vae/, roadmap/ and apn/ side by side."""
+        model_dir = Path(model_dir)
+        vae, config = load_vae(model_dir / "vae")
+        apn, _ = load_apn(model_dir / "apn")
+        roadmap = Roadmap.load(model_dir / "roadmap")
+        return cls(get_task(config["dataset"]["task"]), VisualPlanner(vae, roadmap), apn)
+
+    @property
+    def image_size(self) -> int:
+        return self.planner.vae.config.image_size
+
+    def encode(self, image: np.ndarray) -> np.ndarray:
+        return self.planner.encode(image[None])[0]
+
+    def plan(
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8
+    ) -> list[VisualActionPlan]:
+        """Plans from a start image to a goal image, in the roadmap's deterministic order."""
+        z = self.planner.encode(np.stack([start, goal]))
+        return self.plan_latent(z[0], z[1], max_plans)
+
+    def plan_latent(
+        self, z_start: np.ndarray, z_goal: np.ndarray, max_plans: int = 8
+    ) -> list[VisualActionPlan]:
+        plans = []
+        for latent_plan in self.planner.plan_latent(z_start, z_goal, max_plans):
+            z = latent_plan.latents
+            arrays, confidences = propose(self.apn, z[:-1], z[1:]) if len(z) > 1 else ([], [])
+            plans.append(
+                VisualActionPlan(
+                    nodes=latent_plan.nodes,
+                    images=self.planner.node_images(latent_plan.nodes),
+                    actions=[self.task.array_to_action(a) for a in arrays],
+                    confidences=[float(c) for c in confidences],
+                )
+            )
+        return plans
+
+
+def most_confident(plans: list[VisualActionPlan]) -> VisualActionPlan:
+    """The plan whose first action the APN is surest of; the first plan on ties."""
+    return max(plans, key=lambda p: p.confidences[0] if p.confidences else 1.0)

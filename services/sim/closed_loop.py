@@ -1,0 +1,139 @@
+"""Closed-loop execution: act, look, re-plan from what is seen, until the goal (paper VI-B).
+
+The planner is anything with `plan(start_image, goal_image, max_plans) -> plans`; in process it is
+the ActionPlanner, in the service stack a client of the planning services.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from services.planner.action_plans import VisualActionPlan, most_confident
+from shared.tasks.base import IllegalActionError, Task, World, WorldError
+
+
+class Planner(Protocol):
+    def plan(
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = ...
+    ) -> list[VisualActionPlan]: ...
+
+
+@dataclass
+class Episode:
+    success: bool
+    reason: str  # "goal", "unreachable", "planner_at_goal", "illegal_action", "max_steps", ...
+    final_state: Any
+    actions: list[Any] = field(default_factory=list)
+    images: list[np.ndarray] = field(default_factory=list)  # observed after each action
+    illegal_actions: int = 0
+
+
+def run_episode(
+    planner: Planner,
+    world: World,
+    start: Any,
+    goal: Any | None,
+    rng: np.random.Generator,
+    goal_image: np.ndarray | None = None,
+    max_steps: int = 20,
+    max_plans: int = 8,
+) -> Episode:
+    """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`."""
+    if goal_image is None:
+        if goal is None:
+            raise ValueError("give the goal as a state or as an image")
+        world.reset(goal, rng)
+        goal_image = world.render()
+    state = world.reset(start, rng)
+    episode = Episode(success=False, reason="max_steps", final_state=state)
+    for _ in range(max_steps):
+        if goal is not None and state == goal:
+            break
+        plans = planner.plan(world.render(), goal_image, max_plans)
+        if not plans:
+            episode.reason = "unreachable"
+            break
+        plan = most_confident(plans)
+        if not plan.actions:  # the planner sees start and goal in one region
+            episode.reason = "planner_at_goal"
+            break
+        try:
+            state = world.execute(plan.actions[0], rng)
+        except IllegalActionError:
+            episode.illegal_actions += 1
+            episode.reason = "illegal_action"  # the world is unchanged: re-planning repeats it
+            break
+        except WorldError as exc:
+            episode.reason = f"physics: {exc}"
+            break
+        episode.actions.append(plan.actions[0])
+        episode.images.append(world.render())
+    episode.final_state = world.read_state()
+    episode.success = goal is not None and episode.final_state == goal
+    if goal is None:
+        episode.success = episode.reason == "planner_at_goal"
+    if episode.success:
+        episode.reason = "goal"
+    return episode
+
+
+def optimal_moves(task: Task, start: Any, goal: Any) -> int | None:
+    """Breadth-first search over the task's state graph."""
+    seen = {start: 0}
+    queue = deque([start])
+    while queue:
+        state = queue.popleft()
+        if state == goal:
+            return seen[state]
+        for _, nxt in task.neighbours(state):
+            if nxt not in seen:
+                seen[nxt] = seen[state] + 1
+                queue.append(nxt)
+    return None
+
+
+def evaluate_system(
+    planner: Planner,
+    world: World,
+    task: Task,
+    pairs: int,
+    seed: int = 0,
+    max_steps: int = 20,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Random start/goal state pairs run closed loop; success = the simulator reaches the goal."""
+    from tqdm import tqdm
+
+    rng = np.random.default_rng(seed)
+    successes = steps_on_success = optimal_on_success = executed = illegal = 0
+    reasons: dict[str, int] = {}
+    for _ in tqdm(range(pairs), desc="closed loop", unit="pair", disable=not progress):
+        start = task.sample_state(rng)
+        goal = task.sample_state(rng)
+        while goal == start:
+            goal = task.sample_state(rng)
+        episode = run_episode(planner, world, start, goal, rng, max_steps=max_steps)
+        executed += len(episode.actions)
+        illegal += episode.illegal_actions
+        reasons[episode.reason] = reasons.get(episode.reason, 0) + 1
+        if episode.success:
+            successes += 1
+            steps_on_success += len(episode.actions)
+            optimal_on_success += optimal_moves(task, start, goal) or 0
+    attempted = executed + illegal
+    return {
+        "pairs": pairs,
+        "success": 100.0 * successes / pairs,
+        "mean_steps": steps_on_success / successes if successes else None,
+        "mean_optimal_steps": optimal_on_success / successes if successes else None,
+        "steps_over_optimal": steps_on_success / optimal_on_success if optimal_on_success else None,
+        "legal_actions": 100.0 * executed / attempted if attempted else None,
+        "actions_executed": executed,
+        "outcomes": dict(sorted(reasons.items())),
+        "max_steps": max_steps,
+        "seed": seed,
+    }

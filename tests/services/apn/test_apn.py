@@ -1,0 +1,53 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from services.apn.model import APN, APNConfig
+from services.apn.train import APNTrainConfig, evaluate_apn, load_apn, propose
+
+
+@pytest.mark.parametrize("head", ["classify", "regress"])
+def test_forward_predict_and_loss(head):
+    model = APN(APNConfig(latent_dim=8, head=head))
+    z1, z2 = torch.randn(5, 8), torch.randn(5, 8)
+    output = model(z1, z2)
+    assert output.shape == (5, 12 if head == "classify" else 4)
+    action, confidence = model.predict(output)
+    assert action.shape == (5, 4) and action.min() >= 0 and action.max() <= 2
+    assert ((confidence >= 0) & (confidence <= 1)).all()
+    target = torch.randint(0, 3, (5, 4))
+    model.loss(output, target).backward()
+
+
+def test_regression_rounds_to_cells():
+    model = APN(APNConfig(latent_dim=2, head="regress"))
+    # sigmoid(0) = 0.5 -> 1.0 of 0..2: exactly cell 1, full confidence
+    action, confidence = model.predict(torch.zeros(1, 4))
+    assert action.tolist() == [[1, 1, 1, 1]] and confidence.item() == pytest.approx(1.0)
+
+
+def test_bad_configs():
+    with pytest.raises(ValueError, match="head"):
+        APNConfig(head="guess")
+    with pytest.raises(ValueError, match="val_fraction"):
+        APNTrainConfig(val_fraction=0)
+
+
+def test_train_load_evaluate(tiny_model):
+    model_dir, data = tiny_model
+    apn, meta = load_apn(model_dir / "apn")
+    assert meta["format"] == "lsr-apn" and meta["pairs"]["val"] >= 1
+    assert meta["pairs"]["train_samples"] == 2 * meta["pairs"]["train"]  # means + S = 1 draw
+    lines = (model_dir / "apn" / "log.jsonl").read_text().splitlines()
+    assert [json.loads(x)["epoch"] for x in lines] == [1, 2, 3]
+    actions, confidences = propose(apn, np.zeros((2, 64), np.float32), np.ones((2, 64), np.float32))
+    assert actions.shape == (2, 4) and confidences.shape == (2,)
+    result = evaluate_apn(model_dir / "apn", model_dir / "vae", data)
+    assert 0 <= result["both"] <= min(result["pick"], result["release"]) <= 100
+
+
+def test_load_error(tmp_path):
+    with pytest.raises(ValueError, match="not an APN folder"):
+        load_apn(tmp_path)

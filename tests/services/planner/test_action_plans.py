@@ -1,0 +1,122 @@
+import json
+
+import numpy as np
+import pytest
+
+from services.cli import main
+from services.planner.action_plans import ActionPlanner, VisualActionPlan, most_confident
+from services.planner.sheets import plan_sheet
+from shared.dataset import load_dataset
+from shared.images import encode_png
+
+
+def test_plans_have_one_action_per_step(tiny_model):
+    model_dir, data_dir = tiny_model
+    planner = ActionPlanner.from_model_dir(model_dir)
+    data = load_dataset(data_dir)
+    plans = planner.plan(data.image1[0], data.image2[5], max_plans=3)
+    assert 1 <= len(plans) <= 3 or plans == []
+    for plan in plans:
+        assert len(plan.images) == len(plan.nodes) == len(plan.actions) + 1
+        assert len(plan.confidences) == len(plan.actions)
+        assert all(image.shape == (32, 32, 3) for image in plan.images)
+        json.dumps(plan.to_json(planner.task))
+    assert [p.nodes for p in plans] == [
+        p.nodes for p in planner.plan(data.image1[0], data.image2[5], 3)
+    ]
+
+
+def test_most_confident_prefers_the_surest_first_action():
+    plans = [
+        VisualActionPlan([0, 1], [], ["a"], [0.6]),
+        VisualActionPlan([0, 2], [], ["b"], [0.9]),
+        VisualActionPlan([0, 3], [], ["c"], [0.9]),
+    ]
+    assert most_confident(plans).nodes == [0, 2]
+
+
+def test_sheet_marks_pick_and_release():
+    from shared.tasks.box_stacking import Cell, Move
+
+    images = [np.full((32, 32, 3), 200, np.uint8)] * 2
+    plan = VisualActionPlan([4, 7], images, [Move(Cell(0, 0), Cell(1, 2))], [0.99])
+    sheet = plan_sheet(plan, lambda row, col: (8.0 + 8 * col, 24.0 - 8 * row), scale=3)
+    assert sheet.shape == (96 + 30, 2 * (96 + 4), 3)
+    blue = (sheet[:, :, 2] > 200) & (sheet[:, :, 0] < 100)
+    green = (sheet[:, :, 1] > 150) & (sheet[:, :, 0] < 100) & (sheet[:, :, 2] < 100)
+    assert blue.any() and green.any()
+
+
+def test_cli_plan_from_states_and_images(tiny_model, tmp_path):
+    model_dir, data_dir = tiny_model
+    out = tmp_path / "plans"
+    rc = main(
+        [
+            "plan",
+            "--model",
+            str(model_dir),
+            "--out",
+            str(out),
+            "--start-state",
+            '{"stacks": [["red", "green"], ["blue"], ["yellow"]]}',
+            "--goal-state",
+            '{"stacks": [["red"], ["green", "blue"], ["yellow"]]}',
+        ]
+    )
+    assert rc == 0
+    summary = json.loads((out / "plans.json").read_text())
+    assert len(list(out.glob("plan_*.png"))) == len(summary["plans"])
+    image = tmp_path / "start.png"
+    image.write_bytes(encode_png(load_dataset(data_dir).image1[0]))
+    assert (
+        main(
+            [
+                "plan",
+                "--model",
+                str(model_dir),
+                "--out",
+                str(tmp_path / "p2"),
+                "--start-image",
+                str(image),
+                "--goal-image",
+                str(image),
+            ]
+        )
+        == 0
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            [
+                "--start-state",
+                '{"stacks": [["red"], ["red"], []]}',
+                "--goal-state",
+                '{"stacks": [["red", "green", "blue", "yellow"], [], []]}',
+            ],
+            "appears twice",
+        ),
+        (
+            [
+                "--start-image",
+                "SMALL",
+                "--goal-state",
+                '{"stacks": [["red"], ["green", "blue"], ["yellow"]]}',
+            ],
+            "16x16, expected 32x32",
+        ),
+        (
+            ["--goal-state", '{"stacks": [["red"], ["green", "blue"], ["yellow"]]}'],
+            "exactly one of --start-image and --start-state",
+        ),
+    ],
+)
+def test_cli_plan_bad_input(tiny_model, tmp_path, capsys, args, message):
+    model_dir, _ = tiny_model
+    small = tmp_path / "small.png"
+    small.write_bytes(encode_png(np.zeros((16, 16, 3), np.uint8)))
+    args = [str(small) if a == "SMALL" else a for a in args]
+    assert main(["plan", "--model", str(model_dir), "--out", str(tmp_path / "o"), *args]) == 2
+    assert message in capsys.readouterr().err
