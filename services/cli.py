@@ -181,6 +181,7 @@ def cmd_eval_vfm(args: argparse.Namespace) -> int:
 def cmd_train_apn(args: argparse.Namespace) -> int:
     from services.apn.train import APNTrainConfig, train_apn
 
+    _single_thread_torch()  # a 7k-parameter MLP: threads only add overhead
     cfg = APNTrainConfig(head=args.head, epochs=args.epochs, samples=args.samples, seed=args.seed)
     meta = train_apn(args.vae, args.data, args.out, cfg)
     print(json.dumps({"best": meta["best"], "pairs": meta["pairs"], "seconds": meta["seconds"]}))
