@@ -134,9 +134,9 @@ def cmd_train_reader(args: argparse.Namespace) -> int:
     meta = train_reader(load_dataset(args.data), args.out, epochs=args.epochs, seed=args.seed)
     print(f"trained in {meta['train']['seconds']:.0f} s on {meta['train']['images']} images")
     if args.test:
-        from services.planner.eval_vfm import test_images
+        from services.planner.eval_vfm import load_test_images
 
-        images, states, _ = test_images(args.test)
+        images, states, _ = load_test_images(args.test)
         reads = read_states(load_reader(args.out), images)
         accuracy = 100.0 * float((reads == states).reshape(len(images), -1).all(1).mean())
         print(json.dumps({"test_images": len(images), "state_accuracy": accuracy}))

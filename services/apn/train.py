@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from services.apn.model import APN, APNConfig, Head
 from services.encoder.checkpoint import encode_images, load_vae
+from shared.checkpoint import read_config, weights_file
 from shared.dataset import load_dataset
 from shared.tasks import get_task
 
@@ -131,16 +132,10 @@ def train_apn(
 
 
 def load_apn(directory: Path | str) -> tuple[APN, dict[str, Any]]:
-    directory = Path(directory)
-    path = directory / "config.json"
-    if not path.is_file():
-        raise ValueError(f"{directory}: no config.json, not an APN folder")
-    meta = json.loads(path.read_text())
-    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise ValueError(f"{path}: not a {FORMAT} v{VERSION} config")
+    meta = read_config(directory, FORMAT, VERSION, "an APN")
     config = meta["model"] | {"action_sizes": tuple(meta["model"]["action_sizes"])}
     model = APN(APNConfig(**config))
-    model.load_state_dict(load_file(directory / "apn.safetensors"))
+    model.load_state_dict(load_file(weights_file(directory, "apn.safetensors")))
     return model.eval(), meta
 
 

@@ -11,15 +11,12 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from services.encoder.model import VAE, VAEConfig, to_tensor, to_uint8
+from shared.checkpoint import read_config, weights_file
 
 FORMAT = "lsr-vae"
 VERSION = 1
 WEIGHTS = "vae.safetensors"
 CONFIG = "config.json"
-
-
-class CheckpointError(ValueError):
-    """A model folder that is missing or malformed."""
 
 
 def save_vae(model: VAE, directory: Path | str, meta: dict[str, Any]) -> None:
@@ -32,20 +29,12 @@ def save_vae(model: VAE, directory: Path | str, meta: dict[str, Any]) -> None:
 
 
 def read_vae_config(directory: Path | str) -> dict[str, Any]:
-    path = Path(directory) / CONFIG
-    if not path.is_file():
-        raise CheckpointError(f"{directory}: no {CONFIG}, not a VAE model folder")
-    config = json.loads(path.read_text())
-    if config.get("format") != FORMAT or config.get("version") != VERSION:
-        raise CheckpointError(f"{path}: not a {FORMAT} v{VERSION} config")
-    return config
+    return read_config(directory, FORMAT, VERSION, "a VAE model")
 
 
 def load_vae(directory: Path | str) -> tuple[VAE, dict[str, Any]]:
     config = read_vae_config(directory)
-    weights = Path(directory) / WEIGHTS
-    if not weights.is_file():
-        raise CheckpointError(f"{directory}: no {WEIGHTS}")
+    weights = weights_file(directory, WEIGHTS)
     model = VAE(VAEConfig(**config["model"]))
     state = {k: v.float() for k, v in load_file(weights).items()}
     model.load_state_dict(state)

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from services.encoder.checkpoint import decode_latents, encode_images
+from services.encoder.model import VAE
 from services.planner.build import default_metric, interleave, load_model
 from services.planner.evaluate import (
     class_distances,
@@ -16,11 +17,12 @@ from services.planner.evaluate import (
     evaluate_plans,
     sample_test_pairs,
 )
-from services.sim.state_reader import load_reader, read_states
+from services.planner.roadmap import Roadmap
+from services.sim.state_reader import StateReader, load_reader, read_states
 from shared.dataset import load_dataset
 
 
-def test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]:
+def load_test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]:
     """All images of a test set (both images of every tuple) with their state arrays."""
     data = load_dataset(test_dir)
     return interleave(data.image1, data.image2), interleave(data.state1, data.state2), data.task
@@ -38,7 +40,7 @@ def run_vfm_eval(
     """Returns the table row and, when training data is at hand, the class-distance analysis."""
     started = time.perf_counter()
     vae, vae_config, roadmap, labels = load_model(model_dir)
-    images, states, task_name = test_images(test_dir)
+    images, states, task_name = load_test_images(test_dir)
     if images.shape[1] != vae_config["model"]["image_size"]:
         raise ValueError(
             f"test images are {images.shape[1]} px, the VAE takes "
@@ -83,7 +85,15 @@ def run_vfm_eval(
     return row, analysis
 
 
-def _interpolation(vae, roadmap, reader, z_test, states, test_pairs, task_name):
+def _interpolation(
+    vae: VAE,
+    roadmap: Roadmap,
+    reader: StateReader,
+    z_test: np.ndarray,
+    states: np.ndarray,
+    test_pairs: np.ndarray,
+    task_name: str,
+) -> dict[str, Any]:
     """Straight lines in latent space with as many points as the roadmap's shortest path."""
     nearest = np.asarray(roadmap.nearest_node(z_test))
     reads = []
@@ -96,7 +106,7 @@ def _interpolation(vae, roadmap, reader, z_test, states, test_pairs, task_name):
     return evaluate_interpolation(task_name, reads, states, test_pairs)
 
 
-def _class_analysis(vae, train_dir, metric) -> dict[str, Any]:
+def _class_analysis(vae: VAE, train_dir: Path | str, metric: str) -> dict[str, Any]:
     """Classes = distinct true states of the training images."""
     data = load_dataset(train_dir)
     z = interleave(encode_images(vae, data.image1)[0], encode_images(vae, data.image2)[0])

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from services.planner.roadmap import Roadmap
+from services.planner.roadmap import Roadmap, pair_distances
 from shared.tasks import get_task
 from shared.tasks.base import Task
 
@@ -186,8 +186,6 @@ def evaluate_interpolation(
 
 def class_distances(z: np.ndarray, classes: np.ndarray, metric: str) -> dict[str, Any]:
     """Paper VI-A1: intra-class distances to the class centroid and inter-centroid distances."""
-    from services.planner.roadmap import pair_distances
-
     labels = np.unique(classes)
     centroids = np.stack([z[classes == c].mean(0) for c in labels])
     intra = [

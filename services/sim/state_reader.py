@@ -21,6 +21,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from services.encoder.model import to_tensor
+from shared.checkpoint import read_config, weights_file
 from shared.dataset import Dataset
 from shared.tasks import get_task
 
@@ -132,15 +133,9 @@ def train_reader(
 
 
 def load_reader(directory: Path | str) -> StateReader:
-    directory = Path(directory)
-    path = directory / "config.json"
-    if not path.is_file():
-        raise ValueError(f"{directory}: no config.json, not a state reader folder")
-    meta = json.loads(path.read_text())
-    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise ValueError(f"{path}: not a {FORMAT} v{VERSION} config")
+    meta = read_config(directory, FORMAT, VERSION, "a state reader")
     model = StateReader(ReaderConfig(**meta["model"]))
-    model.load_state_dict(load_file(directory / "reader.safetensors"))
+    model.load_state_dict(load_file(weights_file(directory, "reader.safetensors")))
     return model.eval()
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.encoder.checkpoint import CheckpointError, decode_latents, encode_images, load_vae
+from services.encoder.checkpoint import decode_latents, encode_images, load_vae
 from services.encoder.model import VAE, VAEConfig
 from services.encoder.train import (
     TrainConfig,
@@ -14,6 +14,7 @@ from services.encoder.train import (
     train_vae,
 )
 from services.sim.datagen import GenerateConfig, generate
+from shared.checkpoint import CheckpointError
 
 
 @pytest.fixture(scope="module")

@@ -63,60 +63,13 @@ def test_a_wrong_node_label_is_caught(synthetic):
     assert result["any"] < 100.0 and result["trans"] < 100.0
 
 
-def test_cli_train_build_eval_on_tiny_data(tmp_path, capsys):
-    train, test = tmp_path / "train", tmp_path / "test"
-    generate(GenerateConfig(pairs=60, seed=1, image_size=32, workers=1), train, progress=False)
+def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
+    model, train = tiny_model
+    test = tmp_path / "test"
     generate(GenerateConfig(pairs=10, seed=2, image_size=32, workers=1), test, progress=False)
-    model = tmp_path / "model"
+    reader = tmp_path / "reader"
     assert (
-        main(
-            [
-                "train",
-                "vae",
-                "--data",
-                str(train),
-                "--metric",
-                "l1",
-                "--out",
-                str(model / "vae"),
-                "--epochs",
-                "1",
-                "--batch-size",
-                "30",
-            ]
-        )
-        == 0
-    )
-    assert (
-        main(
-            [
-                "train",
-                "reader",
-                "--data",
-                str(train),
-                "--out",
-                str(model / "state_reader"),
-                "--epochs",
-                "1",
-            ]
-        )
-        == 0
-    )
-    assert (
-        main(
-            [
-                "build-roadmap",
-                "--vae",
-                str(model / "vae"),
-                "--data",
-                str(train),
-                "--out",
-                str(model / "roadmap"),
-                "--min-samples",
-                "1",
-            ]
-        )
-        == 0
+        main(["train", "reader", "--data", str(train), "--out", str(reader), "--epochs", "1"]) == 0
     )
     capsys.readouterr()
     figure = tmp_path / "dist.png"
@@ -131,6 +84,10 @@ def test_cli_train_build_eval_on_tiny_data(tmp_path, capsys):
                 str(test),
                 "--pairs",
                 "20",
+                "--reader",
+                str(reader),
+                "--train",
+                str(train),
                 "--json",
                 "--figure",
                 str(figure),
@@ -155,23 +112,9 @@ def test_cli_train_build_eval_on_tiny_data(tmp_path, capsys):
     assert figure.read_bytes()[:4] == b"\x89PNG"
 
 
-def test_eval_rejects_a_test_set_of_another_size(tmp_path):
-    train, test = tmp_path / "train", tmp_path / "test"
-    generate(GenerateConfig(pairs=30, seed=1, image_size=32, workers=1), train, progress=False)
+def test_eval_rejects_a_test_set_of_another_size(tiny_model, tmp_path, capsys):
+    model, _ = tiny_model
+    test = tmp_path / "test"
     generate(GenerateConfig(pairs=4, seed=2, image_size=16, workers=1), test, progress=False)
-    model = tmp_path / "model"
-    main(["train", "vae", "--data", str(train), "--out", str(model / "vae"), "--epochs", "1"])
-    main(
-        [
-            "build-roadmap",
-            "--vae",
-            str(model / "vae"),
-            "--data",
-            str(train),
-            "--out",
-            str(model / "roadmap"),
-            "--min-samples",
-            "1",
-        ]
-    )
     assert main(["eval", "vfm", "--model", str(model), "--test", str(test)]) == 2
+    assert "16 px" in capsys.readouterr().err
