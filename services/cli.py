@@ -119,6 +119,7 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         lr_drop_epoch=args.lr_drop_epoch,
         beta_max=args.beta_max,
+        action_on=args.action_on,
         seed=args.seed,
         threads=args.threads,
     )
@@ -306,6 +307,12 @@ def build_parser() -> argparse.ArgumentParser:
     vae.add_argument("--batch-size", type=int, default=64)
     vae.add_argument("--lr-drop-epoch", type=int, default=20)
     vae.add_argument("--beta-max", type=float, default=1.0)
+    vae.add_argument(
+        "--action-on",
+        default="sample",
+        choices=["sample", "mean"],
+        help="latents the action term sees: reparameterised samples or means",
+    )
     vae.add_argument("--seed", type=int, default=0)
     vae.add_argument("--threads", type=int, default=2)
     vae.set_defaults(handler=cmd_train_vae)

@@ -39,12 +39,17 @@ class TrainConfig:
     seed: int = 0
     threads: int = 2
     monitor_pairs: int = 500  # pairs encoded after each epoch to log latent distances
+    # The reference applies the action term to reparameterised samples. With a collapsed
+    # posterior, sample noise alone can exceed d_m (L2: ~11 in 64-D), so "mean" is offered too.
+    action_on: Literal["sample", "mean"] = "sample"
 
     def __post_init__(self) -> None:
         if self.metric not in ("l1", "l2", "inf", "none"):
             raise ValueError(f"metric must be l1, l2, inf or none, got {self.metric!r}")
         if self.epochs < 1 or self.batch_size < 1:
             raise ValueError("epochs and batch_size must be at least 1")
+        if self.action_on not in ("sample", "mean"):
+            raise ValueError(f"action_on must be sample or mean, got {self.action_on!r}")
         if self.dm is not None and self.dm <= 0:
             raise ValueError(f"dm must be positive, got {self.dm}")
 
@@ -80,12 +85,14 @@ def schedules(cfg: TrainConfig, progress: float) -> tuple[float, float]:
     return beta, gamma
 
 
-def vae_terms(model: VAE, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-image summed squared error, KL to N(0, I), and the reparameterised sample."""
+def vae_terms(
+    model: VAE, x: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-image summed squared error, KL to N(0, I), the reparameterised sample and the mean."""
     recon, mu, logvar, z = model(x)
     sse = (recon - x).pow(2).flatten(1).sum(1)
     kl = 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).sum(1)
-    return sse, kl, z
+    return sse, kl, z, mu
 
 
 def latent_gap(mu1: np.ndarray, mu2: np.ndarray, a: np.ndarray, metric: str) -> dict[str, float]:
@@ -154,7 +161,9 @@ def train_vae(
             b = len(idx)
             beta, gamma = schedules(cfg, step / total_steps)
             x = to_tensor(torch.cat([images1[idx], images2[idx]]))
-            sse, kl, z = vae_terms(model, x.contiguous(memory_format=torch.channels_last))
+            sse, kl, z, mu = vae_terms(model, x.contiguous(memory_format=torch.channels_last))
+            if cfg.action_on == "mean":
+                z = mu
             recon, kl_mean = sse.mean(), kl.mean()
             act = (
                 action_term(z[:b], z[b:], a_all[idx], cfg.metric, cfg.d_m)

@@ -58,7 +58,7 @@ def build_from_dataset(
         "nodes": len(roadmap.nodes),
         "edges": len(roadmap.edges),
         "epsilon": roadmap.epsilon,
-        "mean_purity": float(labels.purity.mean()),
+        "mean_purity": float(labels.purity.mean()) if len(labels.purity) else 0.0,
         "pure_nodes": int((labels.purity == 1).sum()),
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,

@@ -51,7 +51,7 @@ def run_vfm_eval(
 
     reader = load_reader(reader_dir) if reader_dir else None
     node_reads = None
-    if reader is not None:
+    if reader is not None and roadmap.num_nodes:
         node_reads = read_states(reader, decode_latents(vae, roadmap.nodes.astype(np.float32)))
     row: dict[str, Any] = {
         "model": str(model_dir),
@@ -60,7 +60,7 @@ def run_vfm_eval(
         "nodes": len(roadmap.nodes),
         "edges": len(roadmap.edges),
         "epsilon": roadmap.epsilon,
-        "node_purity_mean": float(labels.purity.mean()),
+        "node_purity_mean": float(labels.purity.mean()) if len(labels.purity) else 0.0,
         "pure_nodes": int((labels.purity == 1).sum()),
         "distinct_node_states": len({s.tobytes() for s in labels.states}),
         **evaluate_plans(
@@ -95,10 +95,14 @@ def _interpolation(
     task_name: str,
 ) -> dict[str, Any]:
     """Straight lines in latent space with as many points as the roadmap's shortest path."""
-    nearest = np.asarray(roadmap.nearest_node(z_test))
+    nearest = np.asarray(roadmap.nearest_node(z_test)) if roadmap.num_nodes else None
     reads = []
     for i, j in test_pairs:
-        paths = roadmap.shortest_paths(int(nearest[i]), int(nearest[j]), max_paths=1)
+        paths = (
+            roadmap.shortest_paths(int(nearest[i]), int(nearest[j]), max_paths=1)
+            if nearest is not None
+            else []
+        )
         n = len(paths[0]) if paths else 2
         t = np.linspace(0.0, 1.0, n)[:, None]
         line = (1 - t) * z_test[i] + t * z_test[j]

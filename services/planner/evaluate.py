@@ -40,8 +40,9 @@ class NodeLabels:
 
     @classmethod
     def from_json(cls, task: Task, rows: list[dict[str, Any]]) -> NodeLabels:
+        states = [task.state_to_array(task.parse_state(r["state"])) for r in rows]
         return cls(
-            states=np.stack([task.state_to_array(task.parse_state(r["state"])) for r in rows]),
+            states=np.array(states, np.int8).reshape(len(rows), *task.state_array_shape),
             purity=np.array([r["purity"] for r in rows]),
             members=np.array([r["members"] for r in rows]),
         )
@@ -112,6 +113,16 @@ def evaluate_plans(
     """% All / Any / Trans over the pairs, plus decoded-image agreement when reads are given."""
     task = get_task(task_name)
     checker = TransitionChecker(task)
+    if roadmap.num_nodes == 0:  # e.g. a collapsed encoder: every latent in one pruned region
+        return {
+            "pairs": len(pairs),
+            "all": 0.0,
+            "any": 0.0,
+            "trans": 0.0,
+            "no_path": len(pairs),
+            "truncated_at_max_paths": 0,
+            "mean_path_nodes": 0.0,
+        }
     node_states = [task.array_to_state(s) for s in labels.states]
     nearest = np.asarray(roadmap.nearest_node(z_test))
     n_all = n_any = ok_steps = steps = no_path = truncated = 0

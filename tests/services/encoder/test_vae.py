@@ -92,6 +92,17 @@ def test_train_is_seeded_and_round_trips(tiny_data, tmp_path):
     assert b"pickle" not in weights[:200]
 
 
+def test_action_term_on_means(tiny_data, tmp_path):
+    with pytest.raises(ValueError, match="action_on"):
+        TrainConfig(action_on="both")
+    cfg = TrainConfig(
+        metric="l2", action_on="mean", epochs=1, batch_size=16, latent_dim=8, monitor_pairs=16
+    )
+    record = train_vae(tiny_data, tmp_path / "m", cfg, progress=False)
+    assert record["action"] > 0
+    assert load_vae(tmp_path / "m")[1]["train"]["action_on"] == "mean"
+
+
 def test_baseline_trains_without_action_term(tiny_data, tmp_path):
     cfg = TrainConfig(metric="none", epochs=1, batch_size=16, latent_dim=8, monitor_pairs=16)
     record = train_vae(tiny_data, tmp_path / "b", cfg, progress=False)

@@ -118,3 +118,17 @@ def test_eval_rejects_a_test_set_of_another_size(tiny_model, tmp_path, capsys):
     generate(GenerateConfig(pairs=4, seed=2, image_size=16, workers=1), test, progress=False)
     assert main(["eval", "vfm", "--model", str(model), "--test", str(test)]) == 2
     assert "16 px" in capsys.readouterr().err
+
+
+def test_a_roadmap_without_nodes_scores_zero():
+    z = np.zeros((6, 4))
+    a = np.array([0, 0, 1, 1, 0, 1])
+    roadmap = build_roadmap(z, z, a, RoadmapConfig(min_samples=3))  # one region, no edge
+    assert roadmap.num_nodes == 0
+    labels = type(label_nodes(roadmap.point_node, np.zeros((12, 3, 3), np.int8), 0))
+    empty = labels.from_json(TASK, [])
+    assert empty.states.shape == (0, 3, 3)
+    result = evaluate_plans(
+        "box_stacking", roadmap, empty, z, np.zeros((6, 3, 3), np.int8), np.array([[0, 1]]), 5
+    )
+    assert (result["all"], result["any"], result["no_path"]) == (0.0, 0.0, 1)
