@@ -148,11 +148,3 @@ def read_states(model: StateReader, images: np.ndarray, batch: int = 500) -> np.
         x = to_tensor(torch.from_numpy(np.ascontiguousarray(images[start : start + batch])))
         out.append(model(x).argmax(-1).numpy() - 1)
     return np.concatenate(out).reshape(-1, *task.state_array_shape).astype(np.int8)
-
-
-def readable_state(task_name: str, array: np.ndarray) -> Any | None:
-    """The task state an array names, or None when it is not a valid state."""
-    try:
-        return get_task(task_name).array_to_state(array)
-    except ValueError:
-        return None

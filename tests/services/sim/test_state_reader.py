@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from services.sim.datagen import GenerateConfig, generate
-from services.sim.state_reader import load_reader, read_states, readable_state, train_reader
+from services.sim.state_reader import load_reader, read_states, train_reader
 from shared.dataset import load_dataset
 
 
@@ -19,14 +19,6 @@ def test_train_save_load_read(tmp_path):
     assert reads.min() >= -1 and reads.max() <= 3
     again = read_states(load_reader(tmp_path / "r"), data.image1)
     assert np.array_equal(reads, again)
-
-
-def test_readable_state():
-    assert readable_state("box_stacking", np.full((3, 3), -1, np.int8)) is None  # no boxes
-    grid = np.full((3, 3), -1, np.int8)
-    grid[0, :3] = [0, 1, 2]
-    grid[1, 0] = 3
-    assert readable_state("box_stacking", grid) == (("red", "yellow"), ("green",), ("blue",))
 
 
 def test_load_reader_error(tmp_path):
