@@ -268,6 +268,73 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings(args: argparse.Namespace, **fields: Any):
+    """Environment settings (LSR_*) with the flags that were given on top."""
+    from shared.settings import Settings
+
+    given = {k: v for k, v in fields.items() if v is not None}
+    return Settings(**given)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from services.serve import serve_gateway, serve_service
+
+    settings = _settings(
+        args,
+        zenoh_connect=args.connect,
+        model_dir=args.model,
+        instance=args.instance,
+        host=args.host,
+        port=args.port,
+    )
+    if args.service == "gateway":
+        return serve_gateway(settings)
+    return serve_service(args.service, settings)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    from services.serve import serve_router
+
+    return serve_router(args.listen)
+
+
+def cmd_ping(args: argparse.Namespace) -> int:
+    from services.serve import ping
+
+    settings = _settings(args, zenoh_connect=args.connect)
+    return ping(args.service, settings, args.this_host, args.timeout)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from services.stack import StackConfig, run_up
+
+    config = StackConfig(
+        host=args.host, port=args.port, zenoh_port=args.zenoh_port, model_dir=args.model
+    )
+    return run_up(config)
+
+
+def cmd_robot(args: argparse.Namespace) -> int:
+    from services.robot import run_robot
+    from shared.bus import open_session
+
+    task = get_task(args.task)
+    start = task.parse_state(_json_arg(args.start_state))
+    goal = task.parse_state(_json_arg(args.goal_state))
+    config = _settings(args, zenoh_connect=args.connect).bus()
+    config.open_timeout_s = 10.0
+    session = open_session(config)
+    try:
+        episode = run_robot(
+            session, args.robot_id, args.task, start, goal, args.max_steps, args.seed
+        )
+    finally:
+        session.close()
+    outcome = "reached the goal" if episode.success else f"stopped: {episode.reason}"
+    print(f"[{args.robot_id}] {outcome} after {len(episode.actions)} actions")
+    return 0 if episode.success else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="lsr", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -405,6 +472,42 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--size", type=int, default=128)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(handler=cmd_demo)
+    serve = sub.add_parser("serve", help="run one service (or the gateway) until SIGINT/SIGTERM")
+    serve.add_argument("service", choices=["encoder", "planner", "apn", "sim", "gateway"])
+    serve.add_argument("--model", type=Path, help="model folder (env LSR_MODEL_DIR)")
+    serve.add_argument("--connect", help="zenoh router endpoints (env LSR_ZENOH_CONNECT)")
+    serve.add_argument("--instance", help="instance id (default hostname-pid-random)")
+    serve.add_argument("--host", help="gateway: address to bind (env LSR_HOST)")
+    serve.add_argument("--port", type=int, help="gateway: port (env LSR_PORT)")
+    serve.set_defaults(handler=cmd_serve)
+
+    router = sub.add_parser("router", help="a zenoh router (a Python session in router mode)")
+    router.add_argument("--listen", nargs="+", default=["tcp/127.0.0.1:7447"])
+    router.set_defaults(handler=cmd_router)
+
+    ping = sub.add_parser("ping", help="exit 0 when a service answers (container health check)")
+    ping.add_argument("service", choices=["encoder", "planner", "apn", "sim"])
+    ping.add_argument("--this-host", action="store_true", help="only instances on this host")
+    ping.add_argument("--connect", help="zenoh router endpoints (env LSR_ZENOH_CONNECT)")
+    ping.add_argument("--timeout", type=float, default=2.0)
+    ping.set_defaults(handler=cmd_ping)
+
+    up = sub.add_parser("up", help="start the whole stack on loopback; Ctrl-C stops it")
+    up.add_argument("--host", default="127.0.0.1")
+    up.add_argument("--port", type=int, default=8000)
+    up.add_argument("--zenoh-port", type=int, default=7447)
+    up.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    up.set_defaults(handler=cmd_up)
+
+    robot = sub.add_parser("robot", help="an example robot: plans over zenoh, acts in its sim")
+    robot.add_argument("--robot-id", required=True)
+    robot.add_argument("--task", default="box_stacking", choices=task_names())
+    robot.add_argument("--start-state", required=True, help="state JSON, inline or a file path")
+    robot.add_argument("--goal-state", required=True, help="state JSON, inline or a file path")
+    robot.add_argument("--max-steps", type=int, default=20)
+    robot.add_argument("--seed", type=int, default=0)
+    robot.add_argument("--connect", help="zenoh router endpoints (env LSR_ZENOH_CONNECT)")
+    robot.set_defaults(handler=cmd_robot)
     return parser
 
 

@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 from PIL import Image, ImageDraw
 
-from services.planner.action_plans import VisualActionPlan
+from shared.plans import VisualActionPlan
 
 PICK = (40, 90, 255)  # blue circle, as in the paper
 RELEASE = (20, 200, 60)  # green circle

@@ -7,12 +7,13 @@ the ActionPlanner, in the service stack a client of the planning services.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
-from services.planner.action_plans import VisualActionPlan, most_confident
+from shared.plans import VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError
 
 
@@ -41,8 +42,12 @@ def run_episode(
     goal_image: np.ndarray | None = None,
     max_steps: int = 20,
     max_plans: int = 8,
+    on_step: Callable[[int, Any, Any], None] | None = None,
 ) -> Episode:
-    """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`."""
+    """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
+
+    `on_step(step, action, state)` is told of every executed action (progress for robots).
+    """
     if goal_image is None:
         if goal is None:
             raise ValueError("give the goal as a state or as an image")
@@ -72,6 +77,8 @@ def run_episode(
             break
         episode.actions.append(plan.actions[0])
         episode.images.append(world.render())
+        if on_step is not None:
+            on_step(len(episode.actions), plan.actions[0], state)
     episode.final_state = world.read_state()
     episode.success = goal is not None and episode.final_state == goal
     if goal is None:

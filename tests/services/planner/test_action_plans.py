@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 
 from services.cli import main
-from services.planner.action_plans import ActionPlanner, VisualActionPlan, most_confident
+from services.planner.action_plans import ActionPlanner
 from services.planner.sheets import plan_sheet
 from shared.dataset import load_dataset
 from shared.images import encode_png
+from shared.plans import VisualActionPlan, most_confident
 
 
 def test_plans_have_one_action_per_step(tiny_model):

@@ -3,8 +3,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.planner.action_plans import ActionPlanner, VisualActionPlan
+from services.planner.action_plans import ActionPlanner
 from services.sim.closed_loop import evaluate_system, optimal_moves, run_episode
+from shared.plans import VisualActionPlan
 from shared.tasks.box_stacking import Cell, Move
 
 SHIPPED = Path(__file__).resolve().parents[3] / "models" / "box_stacking"

@@ -1,0 +1,191 @@
+"""The REST gateway: thin FastAPI routes over the zenoh services, plus the `lsr/api/plan` queryable.
+
+Routes are plain `def`s, so FastAPI runs them (and their blocking zenoh calls) in its thread pool,
+never on the event loop.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Any
+
+import zenoh
+from fastapi import FastAPI, HTTPException, Request
+from fastapi.responses import JSONResponse
+from pydantic import ValidationError
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from services.gateway.planning import Gateway, plan_query_error
+from services.gateway.schemas import (
+    ExecuteRequest,
+    ExecuteResponse,
+    Health,
+    PlanRequest,
+    PlanResponse,
+    RenderRequest,
+    RenderResponse,
+)
+from services.runtime import close_quietly
+from shared.bus import API_PLAN_KEY, JSON, RemoteError, ServiceUnavailable, open_session
+from shared.settings import Settings
+from shared.tasks import get_task, task_names
+from shared.validation import FieldError
+
+log = logging.getLogger(__name__)
+API_PLAN_WORKERS = 4
+
+
+def error_body(exc: Exception) -> tuple[int, Any] | None:
+    """The HTTP status and `detail` for the errors the gateway expects; None for a bug."""
+    if isinstance(exc, FieldError):
+        loc = ["body", *exc.field.split(".")]
+        return 422, [{"loc": loc, "msg": str(exc), "type": "value_error"}]
+    if isinstance(exc, ValidationError):
+        errors = json.loads(exc.json(include_url=False, include_context=False))
+        return 422, [{**e, "loc": ["body", *e["loc"]]} for e in errors]
+    if isinstance(exc, ServiceUnavailable):
+        return 503, str(exc)
+    if isinstance(exc, RemoteError):
+        return (422 if exc.error.code == "bad_request" else 502), str(exc)
+    return None
+
+
+class BodyLimit:
+    """Answers 413 to bodies over `limit` bytes, declared or streamed, before anyone reads them."""
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.limit:
+            return await self._too_large(send)
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            received += len(message.get("body", b""))
+            if received > self.limit:
+                raise _TooLarge
+            return message
+
+        try:
+            await self.app(scope, limited, send)
+        except _TooLarge:
+            await self._too_large(send)
+
+    async def _too_large(self, send: Send) -> None:
+        body = json.dumps({"detail": f"request body over {self.limit} bytes"}).encode()
+        headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
+        await send({"type": "http.response.start", "status": 413, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[], None]:
+    """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out."""
+    pending: queue.Queue[zenoh.Query | None] = queue.Queue()
+    queryable = session.declare_queryable(API_PLAN_KEY, pending.put)
+
+    def work() -> None:
+        while (query := pending.get()) is not None:
+            answer_plan_query(query, gateway)
+            del query  # dropping a query finishes it
+
+    for i in range(API_PLAN_WORKERS):
+        threading.Thread(target=work, name=f"api-plan#{i}", daemon=True).start()
+
+    def stop() -> None:
+        queryable.undeclare()
+        for _ in range(API_PLAN_WORKERS):
+            pending.put(None)
+
+    return stop
+
+
+def answer_plan_query(query: zenoh.Query, gateway: Gateway) -> None:
+    payload = query.payload.to_bytes() if query.payload is not None else b""
+    try:
+        response = gateway.plan(PlanRequest.model_validate_json(payload))
+    except Exception as exc:
+        known = error_body(exc)
+        if known is None:
+            log.exception("lsr/api/plan failed")
+            known = (500, f"{type(exc).__name__}: {exc}")
+        query.reply_err(plan_query_error(*known), encoding=JSON)
+        return
+    query.reply(
+        query.key_expr,
+        response.model_dump_json(),
+        encoding=JSON,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        session = open_session(settings.bus())
+        app.state.gateway = Gateway(session, settings)
+        stop_queries = serve_plan_queries(session, app.state.gateway)
+        yield
+        stop_queries()
+        close_quietly(session)
+
+    app = FastAPI(
+        title="LSR planning gateway",
+        version="1",
+        description="Visual action plans from a Latent Space Roadmap (see docs/services.md).",
+        lifespan=lifespan,
+    )
+
+    async def known_error(request: Request, exc: Exception) -> JSONResponse:
+        status, detail = error_body(exc) or (500, "internal error")
+        headers = {"Retry-After": "1"} if status == 503 else None
+        return JSONResponse({"detail": detail}, status_code=status, headers=headers)
+
+    for kind in (FieldError, ServiceUnavailable, RemoteError):
+        app.add_exception_handler(kind, known_error)
+
+    def gateway(request: Request) -> Gateway:
+        return request.app.state.gateway
+
+    @app.get("/health", response_model=Health, responses={503: {"model": Health}})
+    def health(request: Request) -> JSONResponse:
+        report = gateway(request).health()
+        return JSONResponse(report.model_dump(), status_code=200 if report.status == "ok" else 503)
+
+    @app.get("/tasks/{task}")
+    def task_info(task: str) -> dict[str, Any]:
+        if task not in task_names():
+            raise HTTPException(404, f"unknown task {task!r}; known tasks are {task_names()}")
+        return get_task(task).info()
+
+    @app.post("/render")
+    def render(body: RenderRequest, request: Request) -> RenderResponse:
+        return gateway(request).render(body)
+
+    @app.post("/plan")
+    def plan(body: PlanRequest, request: Request) -> PlanResponse:
+        return gateway(request).plan(body)
+
+    @app.post("/execute")
+    def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:
+        return gateway(request).execute(body)
+
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    return app

@@ -1,0 +1,226 @@
+"""What the gateway does for each route, over zenoh; the FastAPI routes only wrap these."""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+import time
+import uuid
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from services.gateway.schemas import (
+    Endpoint,
+    ExecuteRequest,
+    ExecuteResponse,
+    ExecuteStep,
+    Health,
+    Instance,
+    Plan,
+    PlanRequest,
+    PlanResponse,
+    RenderRequest,
+    RenderResponse,
+    ServiceHealth,
+)
+from shared.bus import JSON, SERVICES, ServiceUnavailable, robot_plan_key, service_key
+from shared.client import PlanningClient
+from shared.images import ImageError, decode_image, encode_png
+from shared.messages import InfoReply, MessageError, RunRequest, WireArray, unpack
+from shared.settings import Settings
+from shared.tasks import get_task
+from shared.tasks.base import InvalidStateError
+from shared.validation import FieldError
+
+INFO_TTL_S = 10.0
+
+
+def png_b64(image: np.ndarray) -> str:
+    return base64.b64encode(encode_png(image)).decode("ascii")
+
+
+def decode_b64_image(field: str, text: str, size: int) -> np.ndarray:
+    if text.startswith("data:"):
+        text = text.partition(",")[2]
+    try:
+        data = base64.b64decode(text, validate=True)
+    except (binascii.Error, ValueError):
+        raise FieldError(field, "not valid base64") from None
+    try:
+        return decode_image(data, size)
+    except ImageError as exc:
+        raise FieldError(field, str(exc)) from None
+
+
+class Gateway:
+    def __init__(self, session: zenoh.Session, settings: Settings) -> None:
+        self.session = session
+        self.settings = settings
+        self._clients: dict[str, PlanningClient] = {}
+        self._info: dict[str, tuple[float, InfoReply]] = {}
+
+    def client(self, task: str) -> PlanningClient:
+        if task not in self._clients:
+            self._clients[task] = PlanningClient(
+                self.session, task, self.settings.deadline_s, self.settings.attempt_timeout_s
+            )
+        return self._clients[task]
+
+    # service discovery ---------------------------------------------------------------------
+    def _ask_instances(self, service: str, task: str, timeout_s: float = 1.5) -> Any:
+        """Ask every live instance for its info (each answers on its own key)."""
+        return self.session.get(
+            service_key(service, task, "info/*"),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+        )
+
+    @staticmethod
+    def _collect(replies: Any) -> list[InfoReply]:
+        found = []
+        for reply in replies:
+            if reply.ok is not None:
+                try:
+                    found.append(unpack(reply.ok.payload.to_bytes(), InfoReply))
+                except MessageError:
+                    continue
+        return sorted(found, key=lambda info: info.instance)
+
+    def image_size(self, task: str) -> int:
+        """The model's image size, asked of the encoder and remembered for a few seconds."""
+        cached = self._info.get(task)
+        if cached is None or time.monotonic() - cached[0] > INFO_TTL_S:
+            found = self._collect(self._ask_instances("encoder", task))
+            if not found:
+                raise ServiceUnavailable("encoder", f"no instance serves task {task!r}")
+            cached = (time.monotonic(), found[0])
+            self._info[task] = cached
+        return cached[1].image_size
+
+    def health(self) -> Health:
+        asked = {
+            (service, task): self._ask_instances(service, task)
+            for service in SERVICES
+            for task in self.settings.tasks
+        }  # all in flight at once
+        found = {key: self._collect(replies) for key, replies in asked.items()}
+        services: dict[str, ServiceHealth] = {}
+        for service in SERVICES:
+            per_task = [found[(service, task)] for task in self.settings.tasks]
+            services[service] = ServiceHealth(
+                status="ok" if all(per_task) else "unavailable",
+                instances=[
+                    Instance(
+                        instance=i.instance, task=i.task, model_id=i.model_id, uptime_s=i.uptime_s
+                    )
+                    for infos in per_task
+                    for i in infos
+                ],
+            )
+        down = [name for name, s in services.items() if s.status != "ok"]
+        if down:
+            return Health(status="unavailable", services=services, detail=f"down: {down}")
+        models = {(i.task, i.model_id) for infos in found.values() for i in infos}
+        if len({task for task, _ in models}) != len(models):
+            detail = "services serve different models"
+            return Health(status="inconsistent", services=services, detail=detail)
+        return Health(status="ok", services=services)
+
+    # routes ---------------------------------------------------------------------------------
+    def _images(
+        self, task: str, endpoints: dict[str, Endpoint], seed: int = 0
+    ) -> dict[str, np.ndarray]:
+        """Decode the image endpoints, render the state endpoints (in one sim call)."""
+        logic = get_task(task)
+        size = self.image_size(task)
+        images, states = {}, {}
+        for name, endpoint in endpoints.items():
+            if endpoint.image is not None:
+                images[name] = decode_b64_image(f"{name}.image", endpoint.image, size)
+            else:
+                states[name] = parse_state(logic, f"{name}.state", endpoint.state)
+        if states:
+            rendered = self.client(task).render(list(states.values()), seed)
+            images.update(zip(states, rendered, strict=True))
+        return images
+
+    def plan(self, request: PlanRequest) -> PlanResponse:
+        images = self._images(request.task, {"start": request.start, "goal": request.goal})
+        client = self.client(request.task)
+        plans, reason = client.plan_with_reason(
+            images["start"], images["goal"], request.max_plans, request.include_images
+        )
+        response = PlanResponse(
+            plan_id=uuid.uuid4().hex,
+            plans=[
+                Plan(
+                    images=[png_b64(image) for image in plan.images],
+                    actions=[
+                        None if a is None else client.task.action_to_json(a) for a in plan.actions
+                    ],
+                    nodes=plan.nodes,
+                    confidences=[round(c, 6) for c in plan.confidences],
+                )
+                for plan in plans
+            ],
+            reason=reason,
+        )
+        if request.robot_id is not None:
+            self.session.put(
+                robot_plan_key(request.robot_id),
+                response.model_dump_json(),
+                encoding=JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        return response
+
+    def render(self, request: RenderRequest) -> RenderResponse:
+        state = parse_state(get_task(request.task), "state", request.state)
+        image = self.client(request.task).render([state], request.seed)[0]
+        return RenderResponse(image=png_b64(image))
+
+    def execute(self, request: ExecuteRequest) -> ExecuteResponse:
+        logic = get_task(request.task)
+        start = parse_state(logic, "start.state", request.start.state)
+        goal_state = goal_image = None
+        if request.goal.state is not None:
+            goal_state = logic.state_to_json(parse_state(logic, "goal.state", request.goal.state))
+        else:
+            size = self.image_size(request.task)
+            goal_image = WireArray.of(decode_b64_image("goal.image", request.goal.image, size))
+        run = RunRequest(
+            task=request.task,
+            start=logic.state_to_json(start),
+            goal_state=goal_state,
+            goal_image=goal_image,
+            max_steps=request.max_steps,
+            max_plans=request.max_plans,
+            seed=request.seed,
+        )
+        deadline = self.settings.deadline_s + self.settings.execute_step_s * request.max_steps
+        reply = self.client(request.task).run(run, deadline)
+        return ExecuteResponse(
+            success=reply.success,
+            reason=reply.reason,
+            final_state=reply.final_state,
+            steps=[
+                ExecuteStep(action=action, image=png_b64(image))
+                for action, image in zip(reply.actions, reply.images.numpy(), strict=True)
+            ],
+        )
+
+
+def parse_state(task: Any, field: str, obj: Any) -> Any:
+    try:
+        return task.parse_state(obj)
+    except InvalidStateError as exc:
+        raise FieldError(field, str(exc)) from None
+
+
+def plan_query_error(status: int, detail: Any) -> bytes:
+    """The reply_err payload of `lsr/api/plan`: the REST status and body, as JSON."""
+    return json.dumps({"status": status, "detail": detail}).encode()

@@ -1,0 +1,112 @@
+"""The REST (and `lsr/api/plan`) request and response bodies, in one place."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from shared.messages import MAX_PLANS
+from shared.tasks import task_names
+
+ROBOT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TaskRequest(Strict):
+    task: str = Field(examples=["box_stacking"])
+
+    @field_validator("task")
+    @classmethod
+    def _known_task(cls, task: str) -> str:
+        if task not in task_names():
+            raise ValueError(f"unknown task {task!r}; known tasks are {task_names()}")
+        return task
+
+
+class Endpoint(Strict):
+    """A start or goal: a PNG/JPEG image (base64) or a task state, exactly one of them."""
+
+    image: str | None = Field(None, description="PNG or JPEG, base64 (a data: URL prefix is ok)")
+    state: dict[str, Any] | None = Field(None, examples=[{"stacks": [["red"], [], []]}])
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> Endpoint:
+        if (self.image is None) == (self.state is None):
+            raise ValueError("give exactly one of 'image' and 'state'")
+        return self
+
+
+class StateEndpoint(Strict):
+    state: dict[str, Any]
+
+
+class PlanRequest(TaskRequest):
+    start: Endpoint
+    goal: Endpoint
+    max_plans: int = Field(8, ge=1, le=MAX_PLANS)
+    robot_id: str | None = Field(None, pattern=ROBOT_ID_PATTERN)
+    include_images: bool = True
+
+
+class Plan(BaseModel):
+    images: list[str] = Field(description="PNG base64, start to goal; empty without images")
+    actions: list[dict[str, Any] | None]
+    nodes: list[int]
+    confidences: list[float] = Field(description="the APN's confidence in each action")
+
+
+class PlanResponse(BaseModel):
+    plan_id: str
+    plans: list[Plan]
+    reason: str | None = Field(None, description="why there is no plan, when plans is empty")
+
+
+class RenderRequest(TaskRequest):
+    state: dict[str, Any]
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+
+
+class RenderResponse(BaseModel):
+    image: str
+
+
+class ExecuteRequest(TaskRequest):
+    start: StateEndpoint
+    goal: Endpoint
+    max_steps: int = Field(20, ge=1, le=100)
+    max_plans: int = Field(8, ge=1, le=MAX_PLANS)
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+
+
+class ExecuteStep(BaseModel):
+    action: dict[str, Any]
+    image: str = Field(description="PNG base64 observed after the action")
+
+
+class ExecuteResponse(BaseModel):
+    success: bool
+    reason: str
+    final_state: dict[str, Any]
+    steps: list[ExecuteStep]
+
+
+class Instance(BaseModel):
+    instance: str
+    task: str
+    model_id: str
+    uptime_s: float
+
+
+class ServiceHealth(BaseModel):
+    status: Literal["ok", "unavailable"]
+    instances: list[Instance]
+
+
+class Health(BaseModel):
+    status: Literal["ok", "unavailable", "inconsistent"]
+    services: dict[str, ServiceHealth]
+    detail: str | None = None

@@ -1,0 +1,135 @@
+"""An example robot client: asks for plans over zenoh, receives them on its plan key, acts.
+
+The robot's body is its own MuJoCo world. After every action it looks (renders), asks
+`lsr/api/plan` for a plan from what it sees to the goal, takes the plan published on
+`lsr/robot/{robot_id}/plan` for that request, and executes its first action.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import queue
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from services.sim.closed_loop import Episode, run_episode
+from services.sim.worlds import make_world
+from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, robot_plan_key, service_key
+from shared.images import encode_png
+from shared.messages import InfoReply, unpack
+from shared.plans import VisualActionPlan
+from shared.tasks import get_task
+
+
+class RobotPlanner:
+    """The closed loop's Planner over the public zenoh API."""
+
+    def __init__(
+        self, session: zenoh.Session, robot_id: str, task: str, timeout_s: float = 10.0
+    ) -> None:
+        self.session = session
+        self.robot_id = robot_id
+        self.task_name = task
+        self.task = get_task(task)
+        self.timeout_s = timeout_s
+        self._plans: queue.Queue[dict[str, Any]] = queue.Queue()
+        self.subscriber = session.declare_subscriber(
+            robot_plan_key(robot_id),
+            lambda sample: self._plans.put(json.loads(sample.payload.to_bytes())),
+        )
+
+    def plan(
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8
+    ) -> list[VisualActionPlan]:
+        body = {
+            "task": self.task_name,
+            "start": {"image": base64.b64encode(encode_png(start)).decode()},
+            "goal": {"image": base64.b64encode(encode_png(goal)).decode()},
+            "max_plans": max_plans,
+            "robot_id": self.robot_id,
+            "include_images": False,
+        }
+        plan_id = self._request(body)
+        published = self._published(plan_id)
+        return [
+            VisualActionPlan(
+                nodes=p["nodes"],
+                images=[],
+                actions=[self.task.parse_action(a) for a in p["actions"]],
+                confidences=p["confidences"],
+            )
+            for p in published["plans"]
+        ]
+
+    def _request(self, body: dict[str, Any]) -> str:
+        replies = self.session.get(
+            API_PLAN_KEY, payload=json.dumps(body), encoding=JSON, timeout=self.timeout_s
+        )
+        for reply in replies:
+            if reply.ok is None:
+                error = json.loads(reply.err.payload.to_bytes())
+                if error.get("status") == 503:
+                    raise ServiceUnavailable("planning", str(error.get("detail")))
+                raise RuntimeError(f"plan request refused: {error}")
+            return json.loads(reply.ok.payload.to_bytes())["plan_id"]
+        raise ServiceUnavailable("gateway", f"no answer on {API_PLAN_KEY}")
+
+    def _published(self, plan_id: str) -> dict[str, Any]:
+        """The plan as published on this robot's key (others' stale plans are skipped)."""
+        deadline = time.monotonic() + self.timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                message = self._plans.get(timeout=left)
+            except queue.Empty:
+                break
+            if message.get("plan_id") == plan_id:
+                return message
+        raise TimeoutError(f"plan {plan_id} was not published on {robot_plan_key(self.robot_id)}")
+
+    def close(self) -> None:
+        self.subscriber.undeclare()
+
+
+def image_size(session: zenoh.Session, task: str, timeout_s: float = 5.0) -> int:
+    for reply in session.get(service_key("encoder", task, "info/*"), timeout=timeout_s):
+        if reply.ok is not None:
+            return unpack(reply.ok.payload.to_bytes(), InfoReply).image_size
+    raise ServiceUnavailable("encoder", "no instance answered; is the stack up?")
+
+
+def run_robot(
+    session: zenoh.Session,
+    robot_id: str,
+    task_name: str,
+    start: Any,
+    goal: Any,
+    max_steps: int = 20,
+    seed: int = 0,
+) -> Episode:
+    task = get_task(task_name)
+    planner = RobotPlanner(session, robot_id, task_name)
+
+    def progress(step: int, action: Any, state: Any) -> None:
+        print(
+            f"[{robot_id}] step {step}: {json.dumps(task.action_to_json(action))} -> "
+            f"{json.dumps(task.state_to_json(state))}",
+            flush=True,
+        )
+
+    try:
+        with make_world(task_name, image_size(session, task_name)) as world:
+            return run_episode(
+                planner,
+                world,
+                start,
+                goal,
+                np.random.default_rng(seed),
+                max_steps=max_steps,
+                on_step=progress,
+            )
+    finally:
+        planner.close()

@@ -1,0 +1,120 @@
+"""What every service process does the same way: read the model, join zenoh, serve, stop cleanly."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from services.encoder.checkpoint import WEIGHTS, read_vae_config
+from shared.bus import BusConfig, Handler, Server, open_session, service_key
+from shared.checkpoint import weights_file
+from shared.messages import InfoReply
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """The model folder every service of one deployment serves (vae/, roadmap/, apn/)."""
+
+    directory: Path
+    task: str
+    model_id: str  # the first 12 hex digits of the VAE weights' sha256
+    image_size: int
+    latent_dim: int
+
+    @classmethod
+    def read(cls, directory: Path | str) -> ModelInfo:
+        directory = Path(directory)
+        config = read_vae_config(directory / "vae")
+        digest = hashlib.sha256(weights_file(directory / "vae", WEIGHTS).read_bytes())
+        return cls(
+            directory=directory,
+            task=config["dataset"]["task"],
+            model_id=digest.hexdigest()[:12],
+            image_size=int(config["model"]["image_size"]),
+            latent_dim=int(config["model"]["latent_dim"]),
+        )
+
+
+@dataclass
+class ServiceContext:
+    service: str
+    instance: str
+    model: ModelInfo
+    session: zenoh.Session
+    bus: BusConfig
+
+
+# A service's setup loads its model and returns its handlers by operation name.
+Setup = Callable[[ServiceContext], dict[str, Handler]]
+
+
+def run_service(
+    service: str,
+    setup: Setup,
+    model_dir: Path | str,
+    bus: BusConfig,
+    instance: str,
+    torch_threads: int = 1,
+    ready: Callable[[], None] | None = None,
+) -> int:
+    """Serve until SIGINT or SIGTERM. One torch thread by default: the services share the CPU."""
+    import torch
+
+    torch.set_num_threads(torch_threads)
+    model = ModelInfo.read(model_dir)
+    session = open_session(bus)
+    context = ServiceContext(service, instance, model, session, bus)
+    handlers = setup(context)
+    started = time.monotonic()
+
+    def info(_: bytes) -> InfoReply:
+        return InfoReply(
+            service=service,
+            instance=instance,
+            task=model.task,
+            model_id=model.model_id,
+            image_size=model.image_size,
+            latent_dim=model.latent_dim,
+            pid=os.getpid(),
+            uptime_s=round(time.monotonic() - started, 3),
+        )
+
+    server = Server(session, service, instance)
+    for operation, handler in handlers.items():
+        server.serve(service_key(service, model.task, operation), handler)
+    # Health answers come from every instance (the gateway lists them), so each has its own key.
+    server.serve(service_key(service, model.task, f"info/{instance}"), info)
+    log.info("%s %s serving %s (model %s)", service, instance, model.task, model.model_id)
+    print(f"{service} {instance} ready: task {model.task}, model {model.model_id}", flush=True)
+    if ready is not None:
+        ready()
+    wait_for_stop_signal()
+    server.close()
+    close_quietly(session)
+    return 0
+
+
+def wait_for_stop_signal() -> None:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
+
+
+def close_quietly(session: zenoh.Session, timeout_s: float = 3.0) -> None:
+    """Close a session, but never hang a shutdown on it."""
+    closer = threading.Thread(target=session.close, daemon=True)
+    closer.start()
+    closer.join(timeout_s)

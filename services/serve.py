@@ -1,0 +1,80 @@
+"""`lsr serve ...`, `lsr router` and `lsr ping`: the long-running processes of the stack."""
+
+from __future__ import annotations
+
+import importlib
+import socket
+import sys
+
+import zenoh
+
+from services.runtime import close_quietly, run_service, wait_for_stop_signal
+from shared.bus import SERVICES, BusConfig, host_id, new_instance_id, open_session, service_key
+from shared.messages import InfoReply, MessageError, unpack
+from shared.settings import Settings
+
+
+def serve_service(service: str, settings: Settings) -> int:
+    if service not in SERVICES:
+        raise ValueError(f"unknown service {service!r}; the services are {list(SERVICES)}")
+    module = importlib.import_module(f"services.{service}.service")
+    return run_service(
+        service,
+        module.setup,
+        settings.model_dir,
+        settings.bus(),
+        settings.instance or new_instance_id(),
+        settings.torch_threads,
+    )
+
+
+def serve_gateway(settings: Settings) -> int:
+    import uvicorn
+
+    from services.gateway.app import create_app
+
+    print(f"gateway on http://{settings.host}:{settings.port} (docs at /docs)", flush=True)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
+    return 0
+
+
+def serve_router(listen: list[str]) -> int:
+    """A zenoh router as a Python session: what zenohd does, for machines without it."""
+    session = zenoh.open(BusConfig(mode="router", listen=listen).zenoh_config())
+    print(f"zenoh router listening on {', '.join(listen)}", flush=True)
+    wait_for_stop_signal()
+    close_quietly(session)
+    return 0
+
+
+def ping(service: str, settings: Settings, this_host: bool, timeout_s: float = 2.0) -> int:
+    """Exit 0 when an instance of `service` (on this host, if asked) answers: a health check."""
+    config = settings.bus()
+    config.open_timeout_s = timeout_s
+    session = open_session(config)
+    instance = f"{host_id()}-$*" if this_host else "*"
+    found = []
+    for task in settings.tasks:
+        replies = session.get(
+            service_key(service, task, f"info/{instance}"),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+        )
+        for reply in replies:
+            if reply.ok is not None:
+                try:
+                    found.append(unpack(reply.ok.payload.to_bytes(), InfoReply))
+                except MessageError:
+                    continue
+    close_quietly(session)
+    for info in found:
+        print(
+            f"{info.service} {info.instance}: task {info.task}, model {info.model_id}, "
+            f"up {info.uptime_s:.0f} s"
+        )
+    if not found:
+        where = f" on {socket.gethostname()}" if this_host else ""
+        print(f"no {service} instance{where} answered within {timeout_s} s", file=sys.stderr)
+        return 1
+    return 0

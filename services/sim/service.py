@@ -1,0 +1,84 @@
+"""The sim service: renders states and runs closed-loop episodes in MuJoCo physics.
+
+An episode plans through the encoder, planner and APN services like any other client, so the
+sim holds no model: only the image size it must render at.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.runtime import ServiceContext
+from services.sim.closed_loop import run_episode
+from services.sim.worlds import make_world
+from shared.bus import Handler
+from shared.client import PlanningClient
+from shared.messages import RenderReply, RenderRequest, RunReply, RunRequest, WireArray, unpack
+from shared.tasks import get_task
+from shared.tasks.base import InvalidStateError, World
+from shared.validation import FieldError, check_task
+
+
+def setup(context: ServiceContext) -> dict[str, Handler]:
+    name, size = context.model.task, context.model.image_size
+    task = get_task(name)
+    # One world per operation, made by that operation's worker thread on first use: an EGL
+    # context can only be current in one thread, and the worker is the thread that renders.
+    worlds: dict[str, World] = {}
+
+    def world(operation: str) -> World:
+        if operation not in worlds:
+            worlds[operation] = make_world(name, size)
+        return worlds[operation]
+    planner = PlanningClient(context.session, name)
+
+    def parse_state(field: str, obj: object):
+        try:
+            return task.parse_state(obj)
+        except InvalidStateError as exc:
+            raise FieldError(field, str(exc)) from None
+
+    def render(payload: bytes) -> RenderReply:
+        request = unpack(payload, RenderRequest)
+        check_task(request.task, name)
+        states = [parse_state(f"states.{i}", s) for i, s in enumerate(request.states)]
+        rng = np.random.default_rng(request.seed)
+        render_world = world("render")
+        images = []
+        for state in states:
+            render_world.reset(state, rng)
+            images.append(render_world.render())
+        return RenderReply(images=WireArray.of(np.stack(images)))
+
+    def run(payload: bytes) -> RunReply:
+        request = unpack(payload, RunRequest)
+        check_task(request.task, name)
+        start = parse_state("start", request.start)
+        goal = None if request.goal_state is None else parse_state("goal_state", request.goal_state)
+        goal_image = None
+        if request.goal_image is not None:
+            goal_image = request.goal_image.numpy()
+            if request.goal_image.dtype != "|u1" or goal_image.shape != (size, size, 3):
+                raise FieldError("goal_image", f"expected uint8 ({size}, {size}, 3)")
+        if (goal is None) == (goal_image is None):
+            raise FieldError("goal_state", "give exactly one of goal_state and goal_image")
+        episode = run_episode(
+            planner,
+            world("run"),
+            start,
+            goal,
+            np.random.default_rng(request.seed),
+            goal_image=goal_image,
+            max_steps=request.max_steps,
+            max_plans=request.max_plans,
+        )
+        images = np.stack(episode.images) if episode.images else np.zeros((0, size, size, 3))
+        return RunReply(
+            success=episode.success,
+            reason=episode.reason,
+            final_state=task.state_to_json(episode.final_state),
+            actions=[task.action_to_json(a) for a in episode.actions],
+            images=WireArray.of(images.astype(np.uint8)),
+        )
+
+    return {"render": render, "run": run}

@@ -1,0 +1,181 @@
+"""`lsr up`: a zenoh router, every service and the gateway as child processes on loopback.
+
+The same launcher starts the stack for the end-to-end tests and the latency benchmark.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+from shared.bus import SERVICES
+
+
+@dataclass
+class StackConfig:
+    host: str = "127.0.0.1"
+    port: int = 8000
+    zenoh_port: int = 7447
+    model_dir: Path = Path("models/box_stacking")
+    log_dir: Path | None = None  # None: children write to this terminal
+    env: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.zenoh_port}"
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+
+class Stack:
+    """Child processes by name; stopping the stack stops every one of them."""
+
+    def __init__(self, config: StackConfig) -> None:
+        self.config = config
+        self.processes: dict[str, subprocess.Popen] = {}
+        self._logs: list[IO] = []
+
+    def _spawn(self, name: str, args: list[str]) -> subprocess.Popen:
+        if name in self.processes and self.processes[name].poll() is None:
+            raise RuntimeError(f"{name} is already running")
+        env = {
+            **os.environ,
+            "LSR_ZENOH_CONNECT": self.config.endpoint,
+            "LSR_MODEL_DIR": str(self.config.model_dir),
+            "PYTHONUNBUFFERED": "1",
+            **self.config.env,
+        }
+        out: IO | None = None
+        if self.config.log_dir is not None:
+            self.config.log_dir.mkdir(parents=True, exist_ok=True)
+            out = open(self.config.log_dir / f"{name}.log", "ab")  # noqa: SIM115
+            self._logs.append(out)
+        process = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", *args],
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT if out else None,
+            start_new_session=True,  # Ctrl-C reaches `lsr up`, which then stops the children
+        )
+        self.processes[name] = process
+        return process
+
+    def start_router(self) -> None:
+        self._spawn("router", ["router", "--listen", f"tcp/127.0.0.1:{self.config.zenoh_port}"])
+
+    def start_service(self, service: str, name: str | None = None) -> subprocess.Popen:
+        return self._spawn(name or service, ["serve", service])
+
+    def start_gateway(self) -> None:
+        args = ["serve", "gateway", "--host", self.config.host, "--port", str(self.config.port)]
+        self._spawn("gateway", args)
+
+    def start(self) -> None:
+        self.start_router()
+        for service in SERVICES:
+            self.start_service(service)
+        self.start_gateway()
+
+    def health(self, timeout_s: float = 5.0) -> tuple[int, dict]:
+        try:
+            with urllib.request.urlopen(f"{self.config.url}/health", timeout=timeout_s) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, json.loads(exc.read() or b"{}")
+        except (urllib.error.URLError, ConnectionError, TimeoutError):
+            return 0, {}
+
+    def wait_healthy(self, timeout_s: float = 60.0) -> float:
+        """Seconds until /health said 200; RuntimeError naming what is down otherwise."""
+        started = time.monotonic()
+        report: dict = {}
+        while time.monotonic() - started < timeout_s:
+            dead = [n for n, p in self.processes.items() if p.poll() is not None]
+            if dead:
+                raise RuntimeError(f"exited during start-up: {dead}")
+            status, report = self.health()
+            if status == 200:
+                return time.monotonic() - started
+            time.sleep(0.5)
+        raise RuntimeError(f"not healthy after {timeout_s:.0f} s: {report.get('detail', report)}")
+
+    def stop(self, name: str, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> None:
+        process = self.processes.pop(name)
+        if process.poll() is None:
+            process.send_signal(sig)
+            try:
+                process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+    def stop_all(self) -> None:
+        for name in reversed(list(self.processes)):
+            self.stop(name)
+        for log in self._logs:
+            log.close()
+        self._logs.clear()
+
+    def __enter__(self) -> Stack:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop_all()
+
+
+def check_ports_free(config: StackConfig) -> None:
+    """A stack already running on these ports would answer our health checks: refuse to start."""
+    for host, port, what in (
+        (config.host, config.port, "--port"),
+        ("127.0.0.1", config.zenoh_port, "--zenoh-port"),
+    ):
+        with socket.socket() as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as servers do
+            try:
+                probe.bind((host, port))
+            except OSError as exc:
+                raise ValueError(
+                    f"{host}:{port} is not free ({exc.strerror}); choose {what}"
+                ) from None
+
+
+def run_up(config: StackConfig, healthy_timeout_s: float = 60.0) -> int:
+    """Start everything, say where it is, and stop everything on Ctrl-C or SIGTERM."""
+    check_ports_free(config)
+    stopping = False
+
+    def request_stop(*_: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, request_stop)
+    with Stack(config) as stack:
+        stack.start()
+        try:
+            seconds = stack.wait_healthy(healthy_timeout_s)
+        except RuntimeError as exc:
+            print(f"lsr up: {exc}", file=sys.stderr)
+            return 1
+        print(f"LSR is up in {seconds:.1f} s: {config.url} (API docs: {config.url}/docs)")
+        print(f"zenoh router: {config.endpoint}. Ctrl-C stops everything.", flush=True)
+        while not stopping:
+            dead = [n for n, p in stack.processes.items() if p.poll() is not None]
+            if dead:
+                print(f"lsr up: {dead} exited; stopping the stack", file=sys.stderr)
+                return 1
+            time.sleep(0.5)
+        print("stopping", flush=True)
+    return 0

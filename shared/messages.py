@@ -1,0 +1,175 @@
+"""Messages between the services: typed, versioned, msgpack on the wire, arrays as raw bytes.
+
+Every message carries `v` (the schema version). Arrays travel as little-endian bytes with their
+shape and dtype, so a 64x64 image costs 12 KiB plus a few bytes of header, not a JSON list.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+SCHEMA_VERSION = 1
+MAX_PLANS = 64
+ALLOWED_DTYPES = {"|u1": np.uint8, "<f4": np.float32, "<i8": np.int64}
+
+
+class MessageError(ValueError):
+    """Bytes that are not a valid message of the expected kind; the message names the field."""
+
+
+class WireArray(BaseModel):
+    """An n-d array as little-endian bytes."""
+
+    model_config = ConfigDict(frozen=True)
+
+    shape: list[int] = Field(max_length=8)
+    dtype: Literal["|u1", "<f4", "<i8"]
+    data: bytes
+
+    @model_validator(mode="after")
+    def _size_matches(self) -> WireArray:
+        if any(d < 0 for d in self.shape):
+            raise ValueError(f"negative dimension in shape {self.shape}")
+        expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
+        if len(self.data) != expected:
+            raise ValueError(f"{len(self.data)} bytes for shape {self.shape} of {self.dtype}")
+        return self
+
+    @classmethod
+    def of(cls, array: np.ndarray) -> WireArray:
+        array = np.asarray(array)
+        dtype = np.dtype(array.dtype).newbyteorder("<")
+        if dtype.str not in ALLOWED_DTYPES:
+            raise TypeError(f"dtype {array.dtype} cannot go on the wire")
+        return cls(shape=list(array.shape), dtype=dtype.str, data=array.astype(dtype).tobytes())
+
+    def numpy(self) -> np.ndarray:
+        return np.frombuffer(self.data, dtype=np.dtype(self.dtype)).reshape(self.shape)
+
+
+class Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    v: int = SCHEMA_VERSION
+
+
+class TaskMessage(Message):
+    task: str
+
+
+# encoder ------------------------------------------------------------------------------------
+class EncodeRequest(TaskMessage):
+    images: WireArray  # uint8 (N, H, W, 3)
+
+
+class EncodeReply(Message):
+    latents: WireArray  # float32 (N, D): the encoder means
+
+
+class DecodeRequest(TaskMessage):
+    latents: WireArray  # float32 (N, D)
+
+
+class DecodeReply(Message):
+    images: WireArray  # uint8 (N, H, W, 3)
+
+
+# planner ------------------------------------------------------------------------------------
+class PathsRequest(TaskMessage):
+    z_start: WireArray  # float32 (D,)
+    z_goal: WireArray
+    max_plans: int = Field(8, ge=1, le=MAX_PLANS)
+
+
+class PathsReply(Message):
+    paths: list[list[int]]  # roadmap node ids, start to goal, all shortest paths (bounded)
+    node_ids: list[int]  # every node on some path, once
+    node_latents: WireArray  # float32 (len(node_ids), D)
+    reason: str | None = None  # why `paths` is empty
+
+
+# apn ----------------------------------------------------------------------------------------
+class ProposeRequest(TaskMessage):
+    z_from: WireArray  # float32 (M, D)
+    z_to: WireArray
+
+
+class ProposeReply(Message):
+    actions: list[dict[str, Any] | None]  # the task's action JSON per pair
+    confidences: list[float]
+
+
+# sim ----------------------------------------------------------------------------------------
+class RenderRequest(TaskMessage):
+    states: list[Any] = Field(min_length=1, max_length=64)  # the task's state JSON
+    seed: int = Field(0, ge=0, lt=2**63)
+
+
+class RenderReply(Message):
+    images: WireArray
+
+
+class RunRequest(TaskMessage):
+    """A closed-loop episode in the sim's physics, planning through the other services."""
+
+    start: Any  # state JSON
+    goal_state: Any | None = None
+    goal_image: WireArray | None = None
+    max_steps: int = Field(20, ge=1, le=200)
+    max_plans: int = Field(8, ge=1, le=MAX_PLANS)
+    seed: int = Field(0, ge=0, lt=2**63)
+
+
+class RunReply(Message):
+    success: bool
+    reason: str
+    final_state: Any
+    actions: list[dict[str, Any]]
+    images: WireArray  # uint8 (steps, H, W, 3): observed after each action
+
+
+# every service ------------------------------------------------------------------------------
+class InfoReply(Message):
+    service: str
+    instance: str
+    task: str
+    model_id: str  # sha256 prefix of the VAE weights every service of one model shares
+    image_size: int
+    latent_dim: int
+    pid: int
+    uptime_s: float
+
+
+class ErrorReply(Message):
+    code: Literal["bad_request", "unavailable", "internal"]
+    message: str
+    field: str | None = None  # the request field at fault, dotted; for unavailable: the service
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def pack(message: BaseModel) -> bytes:
+    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+
+
+def unpack(payload: bytes, kind: type[M]) -> M:
+    """Bytes -> a `kind` message; MessageError names the version or field that is wrong."""
+    try:
+        obj = msgpack.unpackb(payload, raw=False)
+    except Exception as exc:
+        raise MessageError(f"not msgpack: {exc}") from None
+    if not isinstance(obj, dict):
+        raise MessageError(f"{kind.__name__} must be a map, got {type(obj).__name__}")
+    if obj.get("v") != SCHEMA_VERSION:
+        raise MessageError(f"schema version {obj.get('v')!r} is not {SCHEMA_VERSION}")
+    try:
+        return kind.model_validate(obj)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = ".".join(str(p) for p in err["loc"])
+        raise MessageError(f"{kind.__name__}.{field}: {err['msg']}") from None

@@ -1,0 +1,33 @@
+"""Settings every process reads from the environment (LSR_*); command-line flags override them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from shared.bus import DEFAULT_ENDPOINT, BusConfig
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="LSR_")
+
+    zenoh_connect: str = Field(DEFAULT_ENDPOINT, description="router endpoints, comma-separated")
+    zenoh_open_timeout_s: float | None = Field(
+        None, description="give up joining after this long; unset: retry until a router is up"
+    )
+    model_dir: Path = Path("models/box_stacking")
+    instance: str | None = Field(None, description="instance id; default hostname-pid-random")
+    torch_threads: int = Field(1, ge=1)
+    tasks: list[str] = ["box_stacking"]
+    deadline_s: float = Field(4.5, gt=0, description="per service call, retries included")
+    attempt_timeout_s: float = Field(2.0, gt=0, description="per zenoh query")
+    execute_step_s: float = Field(3.0, gt=0, description="/execute allowance per step")
+    max_body_bytes: int = Field(4 * 1024 * 1024, gt=0)
+    host: str = "127.0.0.1"
+    port: int = 8000
+
+    def bus(self) -> BusConfig:
+        endpoints = [e.strip() for e in self.zenoh_connect.split(",") if e.strip()]
+        return BusConfig(connect=endpoints, open_timeout_s=self.zenoh_open_timeout_s)
