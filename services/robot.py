@@ -67,9 +67,15 @@ class RobotPlanner:
 
     def _request(self, body: dict[str, Any]) -> str:
         replies = self.session.get(
-            API_PLAN_KEY, payload=json.dumps(body), encoding=JSON, timeout=self.timeout_s
+            API_PLAN_KEY,
+            payload=json.dumps(body),
+            encoding=JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            timeout=self.timeout_s,
         )
         for reply in replies:
+            if reply.ok is None and reply.err.encoding != JSON:
+                continue  # zenoh's own timeout
             if reply.ok is None:
                 error = json.loads(reply.err.payload.to_bytes())
                 if error.get("status") == 503:

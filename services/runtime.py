@@ -15,7 +15,7 @@ from pathlib import Path
 import zenoh
 
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
-from shared.bus import BusConfig, Handler, Server, open_session, service_key
+from shared.bus import BusConfig, Handler, Server, close_quietly, open_session, service_key
 from shared.checkpoint import weights_file
 from shared.messages import InfoReply
 
@@ -111,10 +111,3 @@ def wait_for_stop_signal() -> None:
         signal.signal(sig, lambda *_: stop.set())
     while not stop.wait(0.5):
         pass
-
-
-def close_quietly(session: zenoh.Session, timeout_s: float = 3.0) -> None:
-    """Close a session, but never hang a shutdown on it."""
-    closer = threading.Thread(target=session.close, daemon=True)
-    closer.start()
-    closer.join(timeout_s)

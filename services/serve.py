@@ -8,8 +8,16 @@ import sys
 
 import zenoh
 
-from services.runtime import close_quietly, run_service, wait_for_stop_signal
-from shared.bus import SERVICES, BusConfig, host_id, new_instance_id, open_session, service_key
+from services.runtime import run_service, wait_for_stop_signal
+from shared.bus import (
+    SERVICES,
+    BusConfig,
+    close_quietly,
+    host_id,
+    new_instance_id,
+    open_session,
+    service_key,
+)
 from shared.messages import InfoReply, MessageError, unpack
 from shared.settings import Settings
 

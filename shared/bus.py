@@ -94,6 +94,13 @@ def open_session(config: BusConfig) -> zenoh.Session:
             delay = min(delay * 2, 2.0)
 
 
+def close_quietly(session: zenoh.Session, timeout_s: float = 3.0) -> None:
+    """Close a session, but never hang a shutdown on it."""
+    closer = threading.Thread(target=session.close, daemon=True)
+    closer.start()
+    closer.join(timeout_s)
+
+
 class ServiceUnavailable(RuntimeError):
     """No instance of a service answered in time."""
 
@@ -147,6 +154,8 @@ class PendingCall:
             for reply in self.replies:  # type: ignore[attr-defined]
                 if reply.ok is not None:
                     return _decode(self.service, reply.ok.payload.to_bytes(), self.reply_type)
+                if reply.err.encoding != MSGPACK:  # zenoh's own "Timeout": no answer came
+                    continue
                 error: ErrorReply = _decode(self.service, reply.err.payload.to_bytes(), ErrorReply)
                 if error.code == "unavailable":  # a service this one depends on is down
                     raise ServiceUnavailable(error.field or self.service, error.message)
@@ -250,12 +259,7 @@ def answer(query: zenoh.Query, handler: Handler, service: str) -> None:
         log.exception("%s failed on %s", service, query.key_expr)
         error = ErrorReply(code="internal", message=f"{type(exc).__name__}: {exc}")
     else:
-        query.reply(
-            query.key_expr,
-            pack(reply),
-            encoding=MSGPACK,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
+        query.reply(query.key_expr, pack(reply), encoding=MSGPACK)  # congestion: the query's
         return
     query.reply_err(pack(error), encoding=MSGPACK)
 

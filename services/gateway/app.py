@@ -30,8 +30,14 @@ from services.gateway.schemas import (
     RenderRequest,
     RenderResponse,
 )
-from services.runtime import close_quietly
-from shared.bus import API_PLAN_KEY, JSON, RemoteError, ServiceUnavailable, open_session
+from shared.bus import (
+    API_PLAN_KEY,
+    JSON,
+    RemoteError,
+    ServiceUnavailable,
+    close_quietly,
+    open_session,
+)
 from shared.settings import Settings
 from shared.tasks import get_task, task_names
 from shared.validation import FieldError
@@ -126,12 +132,7 @@ def answer_plan_query(query: zenoh.Query, gateway: Gateway) -> None:
             known = (500, f"{type(exc).__name__}: {exc}")
         query.reply_err(plan_query_error(*known), encoding=JSON)
         return
-    query.reply(
-        query.key_expr,
-        response.model_dump_json(),
-        encoding=JSON,
-        congestion_control=zenoh.CongestionControl.BLOCK,
-    )
+    query.reply(query.key_expr, response.model_dump_json(), encoding=JSON)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -30,6 +30,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         if operation not in worlds:
             worlds[operation] = make_world(name, size)
         return worlds[operation]
+
     planner = PlanningClient(context.session, name)
 
     def parse_state(field: str, obj: object):
