@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 up: $(STAMP)
-	$(BIN)/lsr demo
+	$(BIN)/lsr up
 
 test: $(STAMP)
 	$(BIN)/ruff check .

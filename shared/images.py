@@ -20,20 +20,28 @@ def encode_png(image: np.ndarray) -> bytes:
 
 
 def decode_image(data: bytes, size: int | None = None) -> np.ndarray:
-    """PNG/JPEG bytes -> uint8 (H, W, 3); refuses other sizes than `size` when given."""
+    """PNG/JPEG bytes -> uint8 (H, W, 3).
+
+    Refuses other sizes than `size` (checked before any pixel is decoded) and modes that do not
+    convert to RGB without loss of what the camera saw: transparency, 16-bit, CMYK and such.
+    """
     try:
         with Image.open(io.BytesIO(data)) as img:
             if img.format not in ("PNG", "JPEG"):
                 raise ImageError(f"image format {img.format} is not PNG or JPEG")
+            if size is not None and img.size != (size, size):
+                raise ImageError(f"image is {img.size[0]}x{img.size[1]}, expected {size}x{size}")
             if img.mode not in ("RGB", "RGBA", "L", "P"):
                 raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
+            if img.mode == "P" and "transparency" in img.info:
+                img = img.convert("RGBA")
+            if img.mode == "RGBA" and img.getchannel("A").getextrema()[0] < 255:
+                raise ImageError("image has transparent pixels; send an opaque RGB image")
             array = np.asarray(img.convert("RGB"), dtype=np.uint8)
     except ImageError:
         raise
     except Exception as exc:
         raise ImageError(f"not a readable PNG or JPEG image ({exc})") from None
-    if size is not None and array.shape[:2] != (size, size):
-        raise ImageError(f"image is {array.shape[1]}x{array.shape[0]}, expected {size}x{size}")
     return array
 
 

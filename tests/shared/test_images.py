@@ -33,3 +33,16 @@ def test_contact_sheet_shape():
     tiles = [np.zeros((10, 12, 3), np.uint8)] * 5
     sheet = contact_sheet(tiles, columns=3, labels=["a"] * 5)
     assert sheet.shape == (2 * (10 + 14) + 2, 3 * 12 + 4, 3)
+
+
+def test_transparency_is_refused_but_opaque_alpha_converts():
+    rgba = np.zeros((8, 8, 4), np.uint8)
+    transparent = io.BytesIO()
+    Image.fromarray(rgba).save(transparent, format="PNG")
+    with pytest.raises(ImageError, match="transparent"):
+        decode_image(transparent.getvalue(), 8)
+    rgba[..., 3] = 255
+    rgba[..., 0] = 200
+    opaque = io.BytesIO()
+    Image.fromarray(rgba).save(opaque, format="PNG")
+    assert decode_image(opaque.getvalue(), 8)[0, 0].tolist() == [200, 0, 0]

@@ -1,0 +1,344 @@
+"""End to end: the real router, services and gateway as processes on free loopback ports.
+
+The stack serves the shipped model. Tests run in file order; the ones that stop or kill
+processes come last.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from services.stack import Stack, StackConfig, check_ports_free
+from shared.bus import API_PLAN_KEY, JSON, BusConfig, close_quietly, open_session
+from shared.images import encode_png
+from shared.tasks import get_task
+
+MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
+TASK = get_task("box_stacking")
+START = {"stacks": [["red", "green"], ["blue"], ["yellow"]]}
+GOAL = {"stacks": [[], ["yellow", "green", "red"], ["blue"]]}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    config = StackConfig(
+        port=free_port(),
+        zenoh_port=free_port(),
+        model_dir=MODEL,
+        log_dir=tmp_path_factory.mktemp("stack-logs"),
+    )
+    with Stack(config) as running:
+        running.start()
+        running.wait_healthy(90)
+        yield running
+
+
+@pytest.fixture(scope="module")
+def http(stack):
+    with httpx.Client(base_url=stack.config.url, timeout=30) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def bus(stack):
+    session = open_session(BusConfig(connect=[stack.config.endpoint], open_timeout_s=10))
+    yield session
+    close_quietly(session)
+
+
+def png_b64(image: np.ndarray) -> str:
+    return base64.b64encode(encode_png(image)).decode()
+
+
+def render(http: httpx.Client, state: dict, seed: int = 0) -> str:
+    reply = http.post("/render", json={"task": "box_stacking", "state": state, "seed": seed})
+    assert reply.status_code == 200, reply.text
+    return reply.json()["image"]
+
+
+def assert_plans_lead_from(start: dict, goal: dict, body: dict, images: bool = True) -> None:
+    """Every plan is legal move by move from start and ends at goal, per the task's rules."""
+    assert body["plans"], body
+    for plan in body["plans"]:
+        state = TASK.parse_state(start)
+        for action in plan["actions"]:
+            state = TASK.apply(state, TASK.parse_action(action))  # raises on an illegal move
+        assert state == TASK.parse_state(goal)
+        assert len(plan["nodes"]) == len(plan["actions"]) + 1
+        if images:
+            assert len(plan["images"]) == len(plan["actions"]) + 1
+            first = Image.open(io.BytesIO(base64.b64decode(plan["images"][0])))
+            assert first.format == "PNG" and first.size == (64, 64)
+
+
+def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
+    reply = http.get("/health")
+    assert reply.status_code == 200
+    services = reply.json()["services"]
+    assert set(services) == {"encoder", "planner", "apn", "sim"}
+    assert all(s["status"] == "ok" and len(s["instances"]) == 1 for s in services.values())
+    tokens = {str(r.ok.key_expr).split("/")[2] for r in bus.liveliness().get("lsr/alive/**")}
+    assert tokens == {"encoder", "planner", "apn", "sim"}
+    assert http.get("/tasks/box_stacking").json()["num_states"] == 288
+    assert http.get("/tasks/nope").status_code == 404
+    assert http.get("/docs").status_code == 200
+
+
+def test_plan_from_states(http):
+    reply = http.post(
+        "/plan",
+        json={
+            "task": "box_stacking",
+            "start": {"state": START},
+            "goal": {"state": GOAL},
+            "max_plans": 3,
+        },
+    )
+    assert reply.status_code == 200, reply.text
+    body = reply.json()
+    assert len(body["plans"]) <= 3 and body["reason"] is None
+    assert_plans_lead_from(START, GOAL, body)
+
+
+def test_plan_from_images(http):
+    start, goal = render(http, START, seed=5), render(http, GOAL, seed=6)
+    reply = http.post(
+        "/plan",
+        json={
+            "task": "box_stacking",
+            "start": {"image": start},
+            "goal": {"image": "data:image/png;base64," + goal},
+        },
+    )
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(START, GOAL, reply.json())
+
+
+def test_zenoh_query_and_robot_publication(bus):
+    received: list[dict] = []
+    subscriber = bus.declare_subscriber(
+        "lsr/robot/arm-7/plan", lambda s: received.append(json.loads(s.payload.to_bytes()))
+    )
+    time.sleep(0.3)
+    request = {
+        "task": "box_stacking",
+        "start": {"state": START},
+        "goal": {"state": GOAL},
+        "robot_id": "arm-7",
+        "include_images": False,
+    }
+    replies = list(bus.get(API_PLAN_KEY, payload=json.dumps(request), encoding=JSON, timeout=10))
+    assert len(replies) == 1 and replies[0].ok is not None
+    assert str(replies[0].ok.encoding) == "application/json"
+    body = json.loads(replies[0].ok.payload.to_bytes())
+    assert_plans_lead_from(START, GOAL, body, images=False)
+    deadline = time.monotonic() + 5
+    while not received and time.monotonic() < deadline:
+        time.sleep(0.05)
+    subscriber.undeclare()
+    assert received and received[0] == body  # the same JSON, for the same plan_id
+
+    bad = list(bus.get(API_PLAN_KEY, payload=b"{not json", encoding=JSON, timeout=10))
+    assert bad[0].err is not None and json.loads(bad[0].err.payload.to_bytes())["status"] == 422
+
+
+def test_plan_from_a_state_to_itself_has_no_action(http):
+    reply = http.post(
+        "/plan",
+        json={
+            "task": "box_stacking",
+            "start": {"state": START},
+            "goal": {"state": START},
+            "include_images": False,
+        },
+    )
+    assert reply.status_code == 200
+    plans = reply.json()["plans"]
+    assert plans and all(p["actions"] == [] and len(p["nodes"]) == 1 for p in plans)
+
+
+def image_of(size: tuple[int, int], mode: str = "RGB", fmt: str = "PNG") -> str:
+    buffer = io.BytesIO()
+    Image.new(mode, size).save(buffer, format=fmt)
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOAL}}
+BAD_INPUTS = [
+    ("malformed JSON", b'{"task": "box_stacking",', 422, None),
+    ("not an object", [1, 2], 422, None),
+    ("unknown task", {**GOOD, "task": "juggling"}, 422, "task"),
+    ("missing goal", {"task": "box_stacking", "start": {"state": START}}, 422, "goal"),
+    (
+        "invalid state",
+        {**GOOD, "start": {"state": {"stacks": [["red", "red"], [], []]}}},
+        422,
+        "start",
+    ),
+    ("state of the wrong shape", {**GOOD, "goal": {"state": {"columns": 3}}}, 422, "goal"),
+    ("image and state", {**GOOD, "start": {"state": START, "image": "AAAA"}}, 422, "start"),
+    ("bad base64", {**GOOD, "start": {"image": "not base64!"}}, 422, "image"),
+    (
+        "not an image",
+        {**GOOD, "start": {"image": base64.b64encode(b"GIF89a....").decode()}},
+        422,
+        "image",
+    ),
+    (
+        "BMP, not PNG or JPEG",
+        {**GOOD, "goal": {"image": image_of((64, 64), fmt="BMP")}},
+        422,
+        "image",
+    ),
+    ("wrong size", {**GOOD, "start": {"image": image_of((65, 64))}}, 422, "image"),
+    ("transparent RGBA", {**GOOD, "start": {"image": image_of((64, 64), "RGBA")}}, 422, "image"),
+    ("max_plans out of range", {**GOOD, "max_plans": 0}, 422, "max_plans"),
+    ("max_plans not a number", {**GOOD, "max_plans": "many"}, 422, "max_plans"),
+    ("robot_id not a key", {**GOOD, "robot_id": "a/b*"}, 422, "robot_id"),
+    ("unknown field", {**GOOD, "max_plan": 3}, 422, "max_plan"),
+    ("body over the limit", {**GOOD, "start": {"image": "A" * (5 * 1024 * 1024)}}, 413, None),
+]
+
+
+@pytest.mark.parametrize(
+    ("case", "body", "status", "field"), BAD_INPUTS, ids=[c[0] for c in BAD_INPUTS]
+)
+def test_bad_input_gets_a_4xx_naming_the_field(http, case, body, status, field):
+    if isinstance(body, bytes):
+        reply = http.post("/plan", content=body, headers={"content-type": "application/json"})
+    else:
+        reply = http.post("/plan", json=body)
+    assert reply.status_code == status, reply.text
+    if field is not None:
+        assert field in json.dumps(reply.json()["detail"]), reply.text
+
+
+def test_bad_input_on_the_other_routes(http):
+    assert (
+        http.post("/render", json={"task": "box_stacking", "state": START, "seed": -1}).status_code
+        == 422
+    )
+    assert (
+        http.post(
+            "/execute",
+            json={
+                "task": "box_stacking",
+                "start": {"state": START},
+                "goal": {"state": GOAL},
+                "max_steps": 10_000,
+            },
+        ).status_code
+        == 422
+    )
+    reply = http.post(
+        "/execute",
+        json={"task": "box_stacking", "start": {"image": "AAAA"}, "goal": {"state": GOAL}},
+    )
+    assert reply.status_code == 422 and "state" in reply.text  # execution starts from a state
+    assert http.get("/health").status_code == 200  # and the service keeps serving
+
+
+def test_execute_reaches_the_goal(http):
+    reply = http.post(
+        "/execute",
+        json={
+            "task": "box_stacking",
+            "start": {"state": START},
+            "goal": {"state": GOAL},
+            "seed": 3,
+        },
+    )
+    assert reply.status_code == 200, reply.text
+    body = reply.json()
+    assert body["success"] and body["reason"] == "goal"
+    assert body["final_state"] == TASK.state_to_json(TASK.parse_state(GOAL))
+    assert 5 <= len(body["steps"]) <= 8  # the optimum is 5 moves
+    assert all(
+        Image.open(io.BytesIO(base64.b64decode(s["image"]))).size == (64, 64) for s in body["steps"]
+    )
+
+
+def test_robot_client_reaches_its_goal(stack):
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "robot",
+            "--robot-id",
+            "r2",
+            "--connect",
+            stack.config.endpoint,
+            "--start-state",
+            json.dumps(START),
+            "--goal-state",
+            json.dumps(GOAL),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "[r2] step 1:" in result.stdout and "reached the goal" in result.stdout
+
+
+def plan_ok(http: httpx.Client) -> int:
+    return http.post("/plan", json={**GOOD, "include_images": False}).status_code
+
+
+def wait_for(predicate, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.3)
+
+
+def planners(http: httpx.Client) -> int:
+    return len(http.get("/health").json()["services"]["planner"]["instances"])
+
+
+def test_a_replica_takes_over_when_one_is_killed(stack, http):
+    stack.start_service("planner", name="planner-2")
+    wait_for(lambda: planners(http) == 2)
+    stack.stop("planner", sig=signal.SIGKILL)
+    codes = [plan_ok(http) for _ in range(10)]
+    assert codes == [200] * 10
+    wait_for(lambda: planners(http) == 1)
+
+
+def test_a_stopped_service_gives_503_by_name_then_recovers(stack, http):
+    stack.stop("apn")
+    started = time.monotonic()
+    reply = http.post("/plan", json=GOOD)
+    assert reply.status_code == 503 and "apn" in reply.json()["detail"]
+    assert time.monotonic() - started < 5.0
+    health = http.get("/health")
+    assert health.status_code == 503 and health.json()["services"]["apn"]["status"] == "unavailable"
+    stack.start_service("apn")
+    wait_for(lambda: http.get("/health").status_code == 200)
+    assert plan_ok(http) == 200
+
+
+def test_lsr_up_refuses_ports_in_use(stack):
+    config = StackConfig(port=stack.config.port, zenoh_port=free_port())
+    with pytest.raises(ValueError, match="not free"):
+        check_ports_free(config)
