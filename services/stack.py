@@ -5,6 +5,7 @@ The same launcher starts the stack for the end-to-end tests and the latency benc
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -39,6 +40,12 @@ class StackConfig:
         return f"http://{self.host}:{self.port}"
 
 
+def _die_with_parent() -> None:
+    """Children get SIGTERM if the launcher dies without stopping them (Linux)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 class Stack:
     """Child processes by name; stopping the stack stops every one of them."""
 
@@ -68,6 +75,7 @@ class Stack:
             stdout=out,
             stderr=subprocess.STDOUT if out else None,
             start_new_session=True,  # Ctrl-C reaches `lsr up`, which then stops the children
+            preexec_fn=_die_with_parent,
         )
         self.processes[name] = process
         return process

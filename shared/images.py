@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import io
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -17,6 +21,29 @@ def encode_png(image: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(np.asarray(image, dtype=np.uint8)).save(buffer, format="PNG")
     return buffer.getvalue()
+
+
+class PngCache:
+    """base64 PNGs of images seen before: roadmap node images recur in every plan and request."""
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self.capacity = capacity
+        self._encoded: OrderedDict[bytes, str] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def b64(self, image: np.ndarray) -> str:
+        key = hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).digest()
+        key += bytes(str(image.shape), "ascii")
+        with self._lock:
+            if key in self._encoded:
+                self._encoded.move_to_end(key)
+                return self._encoded[key]
+        encoded = base64.b64encode(encode_png(image)).decode("ascii")
+        with self._lock:
+            self._encoded[key] = encoded
+            while len(self._encoded) > self.capacity:
+                self._encoded.popitem(last=False)
+        return encoded
 
 
 def decode_image(data: bytes, size: int | None = None) -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Any
 
 import zenoh
 from fastapi import FastAPI, HTTPException, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -180,9 +180,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def render(body: RenderRequest, request: Request) -> RenderResponse:
         return gateway(request).render(body)
 
-    @app.post("/plan")
-    def plan(body: PlanRequest, request: Request) -> PlanResponse:
-        return gateway(request).plan(body)
+    @app.post("/plan", response_model=PlanResponse)
+    def plan(body: PlanRequest, request: Request) -> Response:
+        # Serialised by pydantic-core in one pass: plans carry many images, and FastAPI's own
+        # re-validation of the returned model would cost more than the planning.
+        response = gateway(request).plan(body)
+        return Response(response.model_dump_json(), media_type="application/json")
 
     @app.post("/execute")
     def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:

@@ -28,7 +28,7 @@ from services.gateway.schemas import (
 )
 from shared.bus import JSON, SERVICES, ServiceUnavailable, robot_plan_key, service_key
 from shared.client import PlanningClient
-from shared.images import ImageError, decode_image, encode_png
+from shared.images import ImageError, PngCache, decode_image, encode_png
 from shared.messages import InfoReply, MessageError, RunRequest, WireArray, unpack
 from shared.settings import Settings
 from shared.tasks import get_task
@@ -61,6 +61,7 @@ class Gateway:
         self.settings = settings
         self._clients: dict[str, PlanningClient] = {}
         self._info: dict[str, tuple[float, InfoReply]] = {}
+        self.pngs = PngCache()
 
     def client(self, task: str) -> PlanningClient:
         if task not in self._clients:
@@ -158,7 +159,7 @@ class Gateway:
             plan_id=uuid.uuid4().hex,
             plans=[
                 Plan(
-                    images=[png_b64(image) for image in plan.images],
+                    images=[self.pngs.b64(image) for image in plan.images],
                     actions=[
                         None if a is None else client.task.action_to_json(a) for a in plan.actions
                     ],

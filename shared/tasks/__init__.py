@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import cache
 
 from shared.tasks.base import Task, TaskError
 from shared.tasks.box_stacking import BoxStacking
@@ -14,7 +15,9 @@ def task_names() -> list[str]:
     return sorted(_TASKS)
 
 
+@cache
 def get_task(name: str) -> Task:
+    """The task's logic; one shared instance per name (tasks hold no mutable state)."""
     try:
         return _TASKS[name]()
     except KeyError:

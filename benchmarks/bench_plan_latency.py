@@ -1,0 +1,170 @@
+"""POST /plan latency through the whole stack against the same work in one process.
+
+Starts router, services and gateway (`lsr up`'s launcher) on free loopback ports with the
+shipped model, sends image-to-image plan requests at concurrency 1 and 8, and times the
+in-process ActionPlanner on the same requests (torch on one thread, as each service runs).
+
+    .venv/bin/python benchmarks/bench_plan_latency.py [--requests 1000] [--pairs 50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import socket
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from services.planner.action_plans import ActionPlanner  # noqa: E402
+from services.sim.worlds import make_world  # noqa: E402
+from services.stack import Stack, StackConfig  # noqa: E402
+from shared.images import PngCache, decode_image, encode_png  # noqa: E402
+from shared.tasks import get_task  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def percentiles(seconds: list[float]) -> dict[str, float]:
+    ms = np.array(seconds) * 1e3
+    return {
+        "p50_ms": round(float(np.percentile(ms, 50)), 2),
+        "p99_ms": round(float(np.percentile(ms, 99)), 2),
+        "mean_ms": round(float(ms.mean()), 2),
+    }
+
+
+def request_bodies(pairs: int, size: int, seed: int) -> list[dict]:
+    task = get_task("box_stacking")
+    rng = np.random.default_rng(seed)
+    bodies = []
+    with make_world("box_stacking", size) as world:
+        for _ in range(pairs):
+            images = []
+            for state in (task.sample_state(rng), task.sample_state(rng)):
+                world.reset(state, rng)
+                images.append(base64.b64encode(encode_png(world.render())).decode())
+            bodies.append(
+                {
+                    "task": "box_stacking",
+                    "start": {"image": images[0]},
+                    "goal": {"image": images[1]},
+                    "max_plans": 8,
+                }
+            )
+    return bodies
+
+
+def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[str, float]]:
+    """The gateway's work without transport: decode inputs, plan, encode the PNGs."""
+    torch.set_num_threads(1)
+    planner = ActionPlanner.from_model_dir(model)
+    pngs = PngCache()  # as the gateway does
+    core, whole = [], []
+    for i in range(repeats + len(bodies)):  # the first pass over the bodies warms the caches
+        body = bodies[i % len(bodies)]
+        t0 = time.perf_counter()
+        start = decode_image(base64.b64decode(body["start"]["image"]), planner.image_size)
+        goal = decode_image(base64.b64decode(body["goal"]["image"]), planner.image_size)
+        t1 = time.perf_counter()
+        plans = planner.plan(start, goal, body["max_plans"])
+        t2 = time.perf_counter()
+        json.dumps(
+            [
+                {"images": [pngs.b64(im) for im in p.images], **p.to_json(planner.task)}
+                for p in plans
+            ]
+        )
+        t3 = time.perf_counter()
+        if i >= len(bodies):
+            core.append(t2 - t1)
+            whole.append(t3 - t0)
+    return {"encode_search_decode_apn": percentiles(core), "with_image_codecs": percentiles(whole)}
+
+
+def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int) -> dict:
+    errors: dict[str, int] = {}
+    latencies: list[float] = []
+
+    def worker(indices: range) -> None:
+        with httpx.Client(base_url=url, timeout=30) as client:
+            for i in indices:
+                t0 = time.perf_counter()
+                try:
+                    reply = client.post("/plan", json=bodies[i % len(bodies)])
+                    latency = time.perf_counter() - t0
+                    ok = reply.status_code == 200 and reply.json()["plans"]
+                    key = "ok" if ok else f"http {reply.status_code}"
+                except httpx.HTTPError as exc:
+                    key = type(exc).__name__
+                if key == "ok":
+                    latencies.append(latency)
+                else:
+                    errors[key] = errors.get(key, 0) + 1
+
+    worker(range(len(bodies)))  # warm-up: every node decoded once, connections open
+    latencies.clear()
+    errors.clear()
+    started = time.perf_counter()
+    chunks = [range(k, requests, concurrency) for k in range(concurrency)]
+    with ThreadPoolExecutor(concurrency) as pool:
+        list(pool.map(worker, chunks))
+    elapsed = time.perf_counter() - started
+    return {
+        "concurrency": concurrency,
+        "requests": requests,
+        "errors": sum(errors.values()),
+        "error_kinds": errors,
+        "requests_per_s": round(requests / elapsed, 1),
+        **percentiles(latencies),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=ROOT / "models" / "box_stacking")
+    parser.add_argument("--requests", type=int, default=1000)
+    parser.add_argument("--pairs", type=int, default=50, help="distinct start/goal image pairs")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    bodies = request_bodies(args.pairs, 64, args.seed)
+    local = in_process(args.model, bodies, repeats=200)
+    print("in process:", json.dumps(local), flush=True)
+
+    with tempfile.TemporaryDirectory() as logs:
+        config = StackConfig(
+            port=free_port(), zenoh_port=free_port(), model_dir=args.model, log_dir=Path(logs)
+        )
+        with Stack(config) as stack:
+            stack.start()
+            print(f"stack healthy in {stack.wait_healthy(90):.1f} s", flush=True)
+            one = through_stack(config.url, bodies, 200, 1)
+            print("stack, concurrency 1:", json.dumps(one), flush=True)
+            eight = through_stack(config.url, bodies, args.requests, 8)
+            print("stack, concurrency 8:", json.dumps(eight), flush=True)
+    ratio = one["p50_ms"] / local["with_image_codecs"]["p50_ms"]
+    print(f"p50 through the stack / in process (same work incl. image codecs): {ratio:.2f}x")
+    print(
+        json.dumps(
+            {"in_process": local, "stack_c1": one, "stack_c8": eight, "p50_ratio": round(ratio, 2)}
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
