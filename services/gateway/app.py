@@ -75,29 +75,29 @@ class BodyLimit:
         if declared is not None and declared.isdigit() and int(declared) > self.limit:
             return await self._too_large(send)
         received = 0
+        refused = False
 
         async def limited() -> Message:
-            nonlocal received
+            nonlocal received, refused
             message = await receive()
             received += len(message.get("body", b""))
-            if received > self.limit:
-                raise _TooLarge
+            if received > self.limit and not refused:
+                refused = True
+                await self._too_large(send)
+                return {"type": "http.disconnect"}  # the app stops reading here
             return message
 
-        try:
-            await self.app(scope, limited, send)
-        except _TooLarge:
-            await self._too_large(send)
+        async def unless_refused(message: Message) -> None:
+            if not refused:  # whatever the app answers after a refusal is dropped
+                await send(message)
+
+        await self.app(scope, limited, unless_refused)
 
     async def _too_large(self, send: Send) -> None:
         body = json.dumps({"detail": f"request body over {self.limit} bytes"}).encode()
         headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
         await send({"type": "http.response.start", "status": 413, "headers": headers})
         await send({"type": "http.response.body", "body": body})
-
-
-class _TooLarge(Exception):
-    pass
 
 
 def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[], None]:

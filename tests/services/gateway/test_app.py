@@ -1,0 +1,79 @@
+"""Gateway pieces that need no network: image decoding, the body limit, error mapping."""
+
+import base64
+import io
+
+import pytest
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from PIL import Image
+from pydantic import ValidationError
+
+from services.gateway.app import BodyLimit, error_body
+from services.gateway.planning import decode_b64_image
+from services.gateway.schemas import PlanRequest
+from shared.bus import RemoteError, ServiceUnavailable
+from shared.messages import ErrorReply
+from shared.validation import FieldError
+
+
+def png_b64(size: int, mode: str = "RGB") -> str:
+    buffer = io.BytesIO()
+    Image.new(mode, (size, size), "red").save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+def test_images_decode_from_base64_with_or_without_a_data_url():
+    assert decode_b64_image("start.image", png_b64(8), 8).shape == (8, 8, 3)
+    assert decode_b64_image("start.image", "data:image/png;base64," + png_b64(8), 8)[0, 0, 0] == 255
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("@@@", "not valid base64"),
+        (base64.b64encode(b"hello").decode(), "not a readable"),
+        (png_b64(9), "expected 8x8"),
+    ],
+)
+def test_bad_images_name_their_field(text, message):
+    with pytest.raises(FieldError, match=message) as info:
+        decode_b64_image("goal.image", text, 8)
+    assert info.value.field == "goal.image"
+
+
+def test_plan_requests_need_exactly_one_of_image_and_state():
+    with pytest.raises(ValidationError, match="exactly one"):
+        PlanRequest.model_validate(
+            {"task": "box_stacking", "start": {}, "goal": {"state": {"stacks": [[], [], []]}}}
+        )
+
+
+def test_errors_map_to_statuses():
+    assert error_body(FieldError("start.state", "bad"))[0] == 422
+    assert error_body(FieldError("start.state", "bad"))[1][0]["loc"] == ["body", "start", "state"]
+    assert error_body(ServiceUnavailable("apn", "gone")) == (503, "apn service unavailable: gone")
+    internal = RemoteError("sim", ErrorReply(code="internal", message="boom"))
+    assert error_body(internal)[0] == 502
+    assert error_body(KeyError("bug")) is None  # a bug is not dressed up as a known error
+
+
+def test_body_limit_refuses_declared_and_streamed_bodies():
+    app = FastAPI()
+
+    @app.post("/echo")
+    async def echo(body: dict) -> dict:
+        return body
+
+    app.add_middleware(BodyLimit, limit=100)
+    client = TestClient(app)
+    assert client.post("/echo", json={"a": 1}).status_code == 200
+    assert client.post("/echo", json={"a": "x" * 200}).status_code == 413
+
+    def chunks():
+        yield b'{"a": "'
+        yield b"x" * 200
+        yield b'"}'
+
+    reply = client.post("/echo", content=chunks(), headers={"content-type": "application/json"})
+    assert reply.status_code == 413 and "100 bytes" in reply.json()["detail"]
