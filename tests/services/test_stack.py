@@ -342,3 +342,52 @@ def test_lsr_up_refuses_ports_in_use(stack):
     config = StackConfig(port=stack.config.port, zenoh_port=free_port())
     with pytest.raises(ValueError, match="not free"):
         check_ports_free(config)
+
+
+def children_of(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_lsr_up_starts_everything_and_a_signal_stops_it_all(sig):
+    port, zenoh_port = free_port(), free_port()
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "up",
+            "--port",
+            str(port),
+            "--zenoh-port",
+            str(zenoh_port),
+            "--model",
+            str(MODEL),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        for line in up.stdout:
+            if "LSR is up" in line:
+                break
+        assert f"http://127.0.0.1:{port}" in line
+        children = children_of(up.pid)
+        assert len(children) == 6  # router, four services, gateway
+        assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=10).status_code == 200
+        up.send_signal(sig)
+        assert up.wait(30) == 0
+        for child in children:
+            assert not Path(f"/proc/{child}").exists(), f"child {child} outlived lsr up"
+    finally:
+        if up.poll() is None:
+            up.kill()
