@@ -268,7 +268,7 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
     return 0
 
 
-def _settings(args: argparse.Namespace, **fields: Any):
+def _settings(**fields: Any):
     """Environment settings (LSR_*) with the flags that were given on top."""
     from shared.settings import Settings
 
@@ -280,7 +280,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from services.serve import serve_gateway, serve_service
 
     settings = _settings(
-        args,
         zenoh_connect=args.connect,
         model_dir=args.model,
         instance=args.instance,
@@ -301,7 +300,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 def cmd_ping(args: argparse.Namespace) -> int:
     from services.serve import ping
 
-    settings = _settings(args, zenoh_connect=args.connect)
+    settings = _settings(zenoh_connect=args.connect)
     return ping(args.service, settings, args.this_host, args.timeout)
 
 
@@ -316,12 +315,12 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 def cmd_robot(args: argparse.Namespace) -> int:
     from services.robot import run_robot
-    from shared.bus import open_session
+    from shared.bus import close_quietly, open_session
 
     task = get_task(args.task)
     start = task.parse_state(_json_arg(args.start_state))
     goal = task.parse_state(_json_arg(args.goal_state))
-    config = _settings(args, zenoh_connect=args.connect).bus()
+    config = _settings(zenoh_connect=args.connect).bus()
     config.open_timeout_s = 10.0
     session = open_session(config)
     try:
@@ -329,7 +328,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
             session, args.robot_id, args.task, start, goal, args.max_steps, args.seed
         )
     finally:
-        session.close()
+        close_quietly(session)
     outcome = "reached the goal" if episode.success else f"stopped: {episode.reason}"
     print(f"[{args.robot_id}] {outcome} after {len(episode.actions)} actions")
     return 0 if episode.success else 1

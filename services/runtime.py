@@ -15,9 +15,10 @@ from pathlib import Path
 import zenoh
 
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
-from shared.bus import BusConfig, Handler, Server, close_quietly, open_session, service_key
+from shared.bus import Handler, Server, close_quietly, new_instance_id, open_session, service_key
 from shared.checkpoint import weights_file
 from shared.messages import InfoReply
+from shared.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -52,29 +53,22 @@ class ServiceContext:
     instance: str
     model: ModelInfo
     session: zenoh.Session
-    bus: BusConfig
+    settings: Settings
 
 
 # A service's setup loads its model and returns its handlers by operation name.
 Setup = Callable[[ServiceContext], dict[str, Handler]]
 
 
-def run_service(
-    service: str,
-    setup: Setup,
-    model_dir: Path | str,
-    bus: BusConfig,
-    instance: str,
-    torch_threads: int = 1,
-    ready: Callable[[], None] | None = None,
-) -> int:
+def run_service(service: str, setup: Setup, settings: Settings) -> int:
     """Serve until SIGINT or SIGTERM. One torch thread by default: the services share the CPU."""
     import torch
 
-    torch.set_num_threads(torch_threads)
-    model = ModelInfo.read(model_dir)
-    session = open_session(bus)
-    context = ServiceContext(service, instance, model, session, bus)
+    torch.set_num_threads(settings.torch_threads)
+    instance = settings.instance or new_instance_id()
+    model = ModelInfo.read(settings.model_dir)
+    session = open_session(settings.bus())
+    context = ServiceContext(service, instance, model, session, settings)
     handlers = setup(context)
     started = time.monotonic()
 
@@ -94,11 +88,9 @@ def run_service(
     for operation, handler in handlers.items():
         server.serve(service_key(service, model.task, operation), handler)
     # Health answers come from every instance (the gateway lists them), so each has its own key.
-    server.serve(service_key(service, model.task, f"info/{instance}"), info)
+    server.serve(service_key(service, model.task, f"info/{instance}"), info, per_instance=False)
     log.info("%s %s serving %s (model %s)", service, instance, model.task, model.model_id)
     print(f"{service} {instance} ready: task {model.task}, model {model.model_id}", flush=True)
-    if ready is not None:
-        ready()
     wait_for_stop_signal()
     server.close()
     close_quietly(session)

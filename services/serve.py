@@ -9,16 +9,7 @@ import sys
 import zenoh
 
 from services.runtime import run_service, wait_for_stop_signal
-from shared.bus import (
-    SERVICES,
-    BusConfig,
-    close_quietly,
-    host_id,
-    new_instance_id,
-    open_session,
-    service_key,
-)
-from shared.messages import InfoReply, MessageError, unpack
+from shared.bus import SERVICES, BusConfig, close_quietly, host_id, instances, open_session
 from shared.settings import Settings
 
 
@@ -26,14 +17,7 @@ def serve_service(service: str, settings: Settings) -> int:
     if service not in SERVICES:
         raise ValueError(f"unknown service {service!r}; the services are {list(SERVICES)}")
     module = importlib.import_module(f"services.{service}.service")
-    return run_service(
-        service,
-        module.setup,
-        settings.model_dir,
-        settings.bus(),
-        settings.instance or new_instance_id(),
-        settings.torch_threads,
-    )
+    return run_service(service, module.setup, settings)
 
 
 def serve_gateway(settings: Settings) -> int:
@@ -61,20 +45,8 @@ def ping(service: str, settings: Settings, this_host: bool, timeout_s: float = 2
     config.open_timeout_s = timeout_s
     session = open_session(config)
     instance = f"{host_id()}-$*" if this_host else "*"
-    found = []
-    for task in settings.tasks:
-        replies = session.get(
-            service_key(service, task, f"info/{instance}"),
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-        )
-        for reply in replies:
-            if reply.ok is not None:
-                try:
-                    found.append(unpack(reply.ok.payload.to_bytes(), InfoReply))
-                except MessageError:
-                    continue
+    asked = [instances(session, service, task, instance, timeout_s) for task in settings.tasks]
+    found = [info for collect in asked for info in collect()]
     close_quietly(session)
     for info in found:
         print(

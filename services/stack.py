@@ -15,6 +15,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -105,11 +106,15 @@ class Stack:
         except (urllib.error.URLError, ConnectionError, TimeoutError):
             return 0, {}
 
-    def wait_healthy(self, timeout_s: float = 60.0) -> float:
+    def wait_healthy(
+        self, timeout_s: float = 60.0, interrupted: Callable[[], bool] = lambda: False
+    ) -> float:
         """Seconds until /health said 200; RuntimeError naming what is down otherwise."""
         started = time.monotonic()
         report: dict = {}
         while time.monotonic() - started < timeout_s:
+            if interrupted():
+                raise RuntimeError("interrupted during start-up")
             dead = [n for n, p in self.processes.items() if p.poll() is not None]
             if dead:
                 raise RuntimeError(f"exited during start-up: {dead}")
@@ -129,9 +134,14 @@ class Stack:
                 process.kill()
                 process.wait()
 
-    def stop_all(self) -> None:
-        for name in reversed(list(self.processes)):
-            self.stop(name)
+    def stop_all(self, timeout_s: float = 10.0) -> None:
+        """Signal every child at once, then wait for them together."""
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for name in list(self.processes):
+            self.stop(name, timeout_s=max(0.1, deadline - time.monotonic()))
         for log in self._logs:
             log.close()
         self._logs.clear()
@@ -173,10 +183,10 @@ def run_up(config: StackConfig, healthy_timeout_s: float = 60.0) -> int:
     with Stack(config) as stack:
         stack.start()
         try:
-            seconds = stack.wait_healthy(healthy_timeout_s)
+            seconds = stack.wait_healthy(healthy_timeout_s, interrupted=lambda: stopping)
         except RuntimeError as exc:
             print(f"lsr up: {exc}", file=sys.stderr)
-            return 1
+            return 0 if stopping else 1
         print(f"LSR is up in {seconds:.1f} s: {config.url} (API docs: {config.url}/docs)")
         print(f"zenoh router: {config.endpoint}. Ctrl-C stops everything.", flush=True)
         while not stopping:

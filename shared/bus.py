@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 import zenoh
 from pydantic import BaseModel
 
-from shared.messages import ErrorReply, M, MessageError, pack, unpack
+from shared.messages import ErrorReply, InfoReply, M, MessageError, pack, unpack
+from shared.tasks.base import TaskError
+from shared.validation import FieldError
 
 log = logging.getLogger(__name__)
 
@@ -120,9 +122,55 @@ class RemoteError(RuntimeError):
         self.error = error
 
 
+class Replicas:
+    """The live instances of every service, from their liveliness tokens, taken in turn.
+
+    Zenoh sends a query to every matching queryable unless one is declared complete, and then
+    always to the same one; so callers spread queries themselves, over per-instance keys.
+    """
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._alive: dict[str, list[str]] = {}
+        self._turn: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self._subscriber = session.liveliness().declare_subscriber(
+            "lsr/alive/*/*", self._on_token, history=True
+        )
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        _, _, service, instance = str(sample.key_expr).split("/")
+        with self._lock:
+            alive = self._alive.setdefault(service, [])
+            if sample.kind == zenoh.SampleKind.PUT and instance not in alive:
+                alive.append(instance)
+            elif sample.kind == zenoh.SampleKind.DELETE and instance in alive:
+                alive.remove(instance)
+
+    def pick(self, service: str) -> str | None:
+        with self._lock:
+            alive = self._alive.get(service)
+            if not alive:
+                return None
+            turn = self._turn.get(service, 0)
+            self._turn[service] = turn + 1
+            return alive[turn % len(alive)]
+
+    def forget(self, service: str, instance: str) -> None:
+        with self._lock:
+            if instance in self._alive.get(service, []):
+                self._alive[service].remove(instance)
+
+
 @dataclass
 class PendingCall:
-    """A query on its way; `result()` waits for the reply. Lets callers run queries in parallel."""
+    """A query on its way; `result()` waits for the reply. Lets callers run queries in parallel.
+
+    The query goes to one instance: the next live one by `replicas`, or, before any is known, to
+    the shared key (where every instance is a complete queryable, so zenoh picks one). A query
+    that nobody serves ends at once; it is sent again, to another instance, while the deadline
+    allows. A query that is served but not answered in time is not repeated: the work would only
+    pile up on a slow instance.
+    """
 
     session: zenoh.Session
     key: str
@@ -130,21 +178,22 @@ class PendingCall:
     payload: bytes
     reply_type: type[BaseModel]
     deadline: float
-    attempt_timeout_s: float
+    replicas: Replicas | None = None
+    instance: str | None = field(init=False, default=None)
     replies: object = field(init=False)
 
     def __post_init__(self) -> None:
         self._send()
 
     def _send(self) -> None:
-        timeout = max(0.05, min(self.attempt_timeout_s, self.deadline - time.monotonic()))
+        self.instance = self.replicas.pick(self.service) if self.replicas else None
         self.replies = self.session.get(
-            self.key,
+            f"{self.key}/{self.instance}" if self.instance else self.key,
             payload=self.payload,
             encoding=MSGPACK,
             target=zenoh.QueryTarget.BEST_MATCHING,
             congestion_control=zenoh.CongestionControl.BLOCK,
-            timeout=timeout,
+            timeout=max(0.05, self.deadline - time.monotonic()),
         )
 
     def result(self) -> BaseModel:
@@ -160,17 +209,15 @@ class PendingCall:
                 if error.code == "unavailable":  # a service this one depends on is down
                     raise ServiceUnavailable(error.field or self.service, error.message)
                 raise RemoteError(self.service, error)
-            # No reply: nobody serves the key (the get ends at once), or an instance died with the
-            # query. Ask again while the deadline allows, so that a live replica can take over; an
-            # unserved key gets a short grace (routes settle) and then fails fast.
             now = time.monotonic()
-            if now - started < 0.05:
-                unserved_since = unserved_since or now
-                if now - unserved_since > UNSERVED_GRACE_S or now > self.deadline:
-                    raise ServiceUnavailable(self.service, f"no instance serves {self.key}")
-                time.sleep(0.05)
-            elif self.deadline - now < 0.05:
+            if now - started >= 0.05:  # served, but silent until the deadline
                 raise ServiceUnavailable(self.service, f"no reply in time on {self.key}")
+            if self.instance is not None and self.replicas is not None:
+                self.replicas.forget(self.service, self.instance)  # gone before its token
+            unserved_since = unserved_since or now
+            if now - unserved_since > UNSERVED_GRACE_S or now > self.deadline:
+                raise ServiceUnavailable(self.service, f"no instance serves {self.key}")
+            time.sleep(0.02)
             self._send()
 
 
@@ -191,7 +238,7 @@ def call(
     request: BaseModel,
     reply_type: type[M],
     deadline_s: float = 4.5,
-    attempt_timeout_s: float = 2.0,
+    replicas: Replicas | None = None,
 ) -> PendingCall:
     """Send a typed query to one instance of `service`; `.result()` returns a `reply_type`."""
     return PendingCall(
@@ -201,8 +248,32 @@ def call(
         pack(request),
         reply_type,
         time.monotonic() + deadline_s,
-        attempt_timeout_s,
+        replicas,
     )
+
+
+def instances(
+    session: zenoh.Session, service: str, task: str, instance: str = "*", timeout_s: float = 1.5
+) -> Callable[[], list[InfoReply]]:
+    """Ask every live instance (or those matching `instance`) for its info; call to collect."""
+    replies = session.get(
+        service_key(service, task, f"info/{instance}"),
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout_s,
+    )
+
+    def collect() -> list[InfoReply]:
+        found = []
+        for reply in replies:
+            if reply.ok is not None:
+                try:
+                    found.append(unpack(reply.ok.payload.to_bytes(), InfoReply))
+                except MessageError:
+                    continue
+        return sorted(found, key=lambda info: info.instance)
+
+    return collect
 
 
 Handler = Callable[[bytes], BaseModel]
@@ -223,19 +294,21 @@ class Server:
         self._queryables: list[zenoh.Queryable] = []
         self._queues: list[queue.Queue[zenoh.Query | None]] = []
 
-    def serve(self, key: str, handler: Handler, workers: int = 1) -> None:
+    def serve(self, key: str, handler: Handler, per_instance: bool = True) -> None:
+        """Answer `key` (as a complete queryable) and, for callers that pick, `key/instance`."""
         pending: queue.Queue[zenoh.Query | None] = queue.Queue()
-        self._queryables.append(self.session.declare_queryable(key, pending.put))
+        keys = [key, f"{key}/{self.instance}"] if per_instance else [key]
+        for k in keys:
+            self._queryables.append(self.session.declare_queryable(k, pending.put, complete=True))
         self._queues.append(pending)
-        for i in range(workers):
-            thread = threading.Thread(
-                target=self._loop, args=(pending, handler), name=f"{key}#{i}", daemon=True
-            )
-            thread.start()
+        threading.Thread(target=self._loop, args=(pending, handler), name=key, daemon=True).start()
 
     def _loop(self, pending: queue.Queue[zenoh.Query | None], handler: Handler) -> None:
         while (query := pending.get()) is not None:
-            answer(query, handler, self.service)
+            try:
+                answer(query, handler, self.service)
+            except Exception:  # a reply that could not be sent must not end the worker
+                log.exception("%s could not answer %s", self.service, query.key_expr)
             del query  # a query is finished when dropped: callers waiting on ALL see it at once
 
     def close(self) -> None:
@@ -250,16 +323,16 @@ def answer(query: zenoh.Query, handler: Handler, service: str) -> None:
     """Run `handler` on a query's payload and reply with its message or an ErrorReply."""
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
-        reply = handler(payload)
+        reply = pack(handler(payload))
     except ServiceUnavailable as exc:
         error = ErrorReply(code="unavailable", message=exc.reason, field=exc.service)
-    except (MessageError, ValueError) as exc:
+    except (MessageError, FieldError, TaskError) as exc:
         error = ErrorReply(code="bad_request", message=str(exc), field=_field_of(exc))
     except Exception as exc:
         log.exception("%s failed on %s", service, query.key_expr)
         error = ErrorReply(code="internal", message=f"{type(exc).__name__}: {exc}")
     else:
-        query.reply(query.key_expr, pack(reply), encoding=MSGPACK)  # congestion: the query's
+        query.reply(query.key_expr, reply, encoding=MSGPACK)  # congestion: the query's
         return
     query.reply_err(pack(error), encoding=MSGPACK)
 

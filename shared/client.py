@@ -11,13 +11,15 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from pydantic import BaseModel
 
-from shared.bus import call
+from shared.bus import PendingCall, Replicas, call
 from shared.messages import (
     DecodeReply,
     DecodeRequest,
     EncodeReply,
     EncodeRequest,
+    M,
     PathsReply,
     PathsRequest,
     ProposeReply,
@@ -33,20 +35,21 @@ from shared.tasks import get_task
 
 
 class PlanningClient:
-    def __init__(
-        self,
-        session: zenoh.Session,
-        task: str,
-        deadline_s: float = 4.5,
-        attempt_timeout_s: float = 2.0,
-    ) -> None:
+    def __init__(self, session: zenoh.Session, task: str, deadline_s: float = 4.5) -> None:
         self.session = session
         self.task_name = task
         self.task = get_task(task)
         self.deadline_s = deadline_s
-        self.attempt_timeout_s = attempt_timeout_s
+        self.replicas = Replicas(session)
 
-    def _call(self, service: str, operation: str, request: Any, reply_type: type, **kw: Any):
+    def _call(
+        self,
+        service: str,
+        operation: str,
+        request: BaseModel,
+        reply_type: type[M],
+        deadline_s: float | None = None,
+    ) -> PendingCall:
         return call(
             self.session,
             service,
@@ -54,8 +57,8 @@ class PlanningClient:
             operation,
             request,
             reply_type,
-            deadline_s=kw.get("deadline_s", self.deadline_s),
-            attempt_timeout_s=kw.get("attempt_timeout_s", self.attempt_timeout_s),
+            deadline_s=deadline_s or self.deadline_s,
+            replicas=self.replicas,
         )
 
     def render(self, states: list[Any], seed: int = 0) -> np.ndarray:
@@ -111,6 +114,8 @@ class PlanningClient:
         plans = []
         for path in found.paths:
             pairs = [proposed[(a, b)] for a, b in itertools.pairwise(path)]
+            if any(action is None for action, _ in pairs):
+                continue  # the APN saw no action between two nodes: not a plan a robot can run
             plans.append(
                 VisualActionPlan(
                     nodes=path,
@@ -119,7 +124,7 @@ class PlanningClient:
                     confidences=[confidence for _, confidence in pairs],
                 )
             )
-        return plans, None
+        return plans, None if plans else "the APN proposed no action for a step of every path"
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, include_images: bool = False
@@ -129,6 +134,4 @@ class PlanningClient:
 
     def run(self, request: RunRequest, deadline_s: float) -> RunReply:
         """A closed-loop episode in a sim instance; it plans through this same network."""
-        return self._call(
-            "sim", "run", request, RunReply, deadline_s=deadline_s, attempt_timeout_s=deadline_s
-        ).result()
+        return self._call("sim", "run", request, RunReply, deadline_s=deadline_s).result()

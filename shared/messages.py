@@ -6,6 +6,7 @@ shape and dtype, so a 64x64 image costs 12 KiB plus a few bytes of header, not a
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal, TypeVar
 
 import msgpack
@@ -34,7 +35,7 @@ class WireArray(BaseModel):
     def _size_matches(self) -> WireArray:
         if any(d < 0 for d in self.shape):
             raise ValueError(f"negative dimension in shape {self.shape}")
-        expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
+        expected = math.prod(self.shape) * np.dtype(self.dtype).itemsize  # exact, no overflow
         if len(self.data) != expected:
             raise ValueError(f"{len(self.data)} bytes for shape {self.shape} of {self.dtype}")
         return self

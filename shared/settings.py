@@ -9,6 +9,9 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.bus import DEFAULT_ENDPOINT, BusConfig
 
+# The shipped model, found from the source tree (not the working directory).
+SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "box_stacking"
+
 
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="LSR_")
@@ -17,12 +20,11 @@ class Settings(BaseSettings):
     zenoh_open_timeout_s: float | None = Field(
         None, description="give up joining after this long; unset: retry until a router is up"
     )
-    model_dir: Path = Path("models/box_stacking")
+    model_dir: Path = SHIPPED_MODEL
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
     tasks: list[str] = ["box_stacking"]
     deadline_s: float = Field(4.5, gt=0, description="per service call, retries included")
-    attempt_timeout_s: float = Field(2.0, gt=0, description="per zenoh query")
     execute_step_s: float = Field(3.0, gt=0, description="/execute allowance per step")
     max_body_bytes: int = Field(4 * 1024 * 1024, gt=0)
     host: str = "127.0.0.1"

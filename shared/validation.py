@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from shared.messages import WireArray
+from shared.tasks.base import InvalidStateError, Task
 
 
 class FieldError(ValueError):
@@ -13,6 +16,30 @@ class FieldError(ValueError):
     def __init__(self, field: str, message: str) -> None:
         super().__init__(f"{field}: {message}")
         self.field = field
+
+
+def parse_state(task: Task, field: str, obj: Any) -> Any:
+    """The task's state from JSON, or a FieldError naming `field`."""
+    try:
+        return task.parse_state(obj)
+    except InvalidStateError as exc:
+        raise FieldError(field, str(exc)) from None
+
+
+def check_images(
+    field: str, array: WireArray, size: int, max_rows: int | None = None
+) -> np.ndarray:
+    """uint8 images of shape (N, size, size, 3); with max_rows=None a single (size, size, 3)."""
+    images = array.numpy()
+    shape = (size, size, 3) if max_rows is None else (*images.shape[:1], size, size, 3)
+    if array.dtype != "|u1" or images.shape != shape:
+        expected = f"({size}, {size}, 3)" if max_rows is None else f"(N, {size}, {size}, 3)"
+        raise FieldError(
+            field, f"expected uint8 {expected}, got {array.dtype} {list(images.shape)}"
+        )
+    if max_rows is not None and not 1 <= len(images) <= max_rows:
+        raise FieldError(field, f"1 to {max_rows} images per request, got {len(images)}")
+    return images
 
 
 def check_task(requested: str, served: str) -> None:

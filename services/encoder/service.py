@@ -18,7 +18,7 @@ from shared.messages import (
     WireArray,
     unpack,
 )
-from shared.validation import FieldError, check_latents, check_task
+from shared.validation import check_images, check_latents, check_task
 
 MAX_BATCH = 256
 
@@ -52,15 +52,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
     def encode(payload: bytes) -> EncodeReply:
         request = unpack(payload, EncodeRequest)
         check_task(request.task, task)
-        images = request.images.numpy()
-        if request.images.dtype != "|u1" or images.shape[1:] != (size, size, 3):
-            raise FieldError(
-                "images",
-                f"expected uint8 (N, {size}, {size}, 3), "
-                f"got {request.images.dtype} {list(images.shape)}",
-            )
-        if not 1 <= len(images) <= MAX_BATCH:
-            raise FieldError("images", f"1 to {MAX_BATCH} images per request, got {len(images)}")
+        images = check_images("images", request.images, size, max_rows=MAX_BATCH)
         return EncodeReply(latents=WireArray.of(encode_images(vae, images)[0]))
 
     def decode(payload: bytes) -> DecodeReply:

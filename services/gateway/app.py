@@ -14,6 +14,7 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
 
+import anyio
 import zenoh
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.responses import JSONResponse, Response
@@ -35,7 +36,9 @@ from shared.bus import (
     JSON,
     RemoteError,
     ServiceUnavailable,
+    alive_key,
     close_quietly,
+    new_instance_id,
     open_session,
 )
 from shared.settings import Settings
@@ -103,11 +106,14 @@ class BodyLimit:
 def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[], None]:
     """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out."""
     pending: queue.Queue[zenoh.Query | None] = queue.Queue()
-    queryable = session.declare_queryable(API_PLAN_KEY, pending.put)
+    queryable = session.declare_queryable(API_PLAN_KEY, pending.put, complete=True)
 
     def work() -> None:
         while (query := pending.get()) is not None:
-            answer_plan_query(query, gateway)
+            try:
+                answer_plan_query(query, gateway)
+            except Exception:  # a reply that could not be sent must not end the worker
+                log.exception("could not answer %s", API_PLAN_KEY)
             del query  # dropping a query finishes it
 
     for i in range(API_PLAN_WORKERS):
@@ -140,11 +146,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        session = open_session(settings.bus())
+        # Joining waits for a router; in a thread, so that uvicorn still hears SIGTERM meanwhile.
+        session = await anyio.to_thread.run_sync(open_session, settings.bus())
+        token = session.liveliness().declare_token(
+            alive_key("gateway", settings.instance or new_instance_id())
+        )
         app.state.gateway = Gateway(session, settings)
         stop_queries = serve_plan_queries(session, app.state.gateway)
         yield
         stop_queries()
+        token.undeclare()
         close_quietly(session)
 
     app = FastAPI(

@@ -26,14 +26,13 @@ from services.gateway.schemas import (
     RenderResponse,
     ServiceHealth,
 )
-from shared.bus import JSON, SERVICES, ServiceUnavailable, robot_plan_key, service_key
+from shared.bus import JSON, SERVICES, ServiceUnavailable, instances, robot_plan_key
 from shared.client import PlanningClient
 from shared.images import ImageError, PngCache, decode_image, encode_png
-from shared.messages import InfoReply, MessageError, RunRequest, WireArray, unpack
+from shared.messages import InfoReply, RunRequest, WireArray
 from shared.settings import Settings
 from shared.tasks import get_task
-from shared.tasks.base import InvalidStateError
-from shared.validation import FieldError
+from shared.validation import FieldError, parse_state
 
 INFO_TTL_S = 10.0
 
@@ -65,37 +64,14 @@ class Gateway:
 
     def client(self, task: str) -> PlanningClient:
         if task not in self._clients:
-            self._clients[task] = PlanningClient(
-                self.session, task, self.settings.deadline_s, self.settings.attempt_timeout_s
-            )
+            self._clients[task] = PlanningClient(self.session, task, self.settings.deadline_s)
         return self._clients[task]
-
-    # service discovery ---------------------------------------------------------------------
-    def _ask_instances(self, service: str, task: str, timeout_s: float = 1.5) -> Any:
-        """Ask every live instance for its info (each answers on its own key)."""
-        return self.session.get(
-            service_key(service, task, "info/*"),
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-        )
-
-    @staticmethod
-    def _collect(replies: Any) -> list[InfoReply]:
-        found = []
-        for reply in replies:
-            if reply.ok is not None:
-                try:
-                    found.append(unpack(reply.ok.payload.to_bytes(), InfoReply))
-                except MessageError:
-                    continue
-        return sorted(found, key=lambda info: info.instance)
 
     def image_size(self, task: str) -> int:
         """The model's image size, asked of the encoder and remembered for a few seconds."""
         cached = self._info.get(task)
         if cached is None or time.monotonic() - cached[0] > INFO_TTL_S:
-            found = self._collect(self._ask_instances("encoder", task))
+            found = instances(self.session, "encoder", task)()
             if not found:
                 raise ServiceUnavailable("encoder", f"no instance serves task {task!r}")
             cached = (time.monotonic(), found[0])
@@ -104,11 +80,11 @@ class Gateway:
 
     def health(self) -> Health:
         asked = {
-            (service, task): self._ask_instances(service, task)
+            (service, task): instances(self.session, service, task)
             for service in SERVICES
             for task in self.settings.tasks
         }  # all in flight at once
-        found = {key: self._collect(replies) for key, replies in asked.items()}
+        found = {key: collect() for key, collect in asked.items()}
         services: dict[str, ServiceHealth] = {}
         for service in SERVICES:
             per_task = [found[(service, task)] for task in self.settings.tasks]
@@ -213,13 +189,6 @@ class Gateway:
                 for action, image in zip(reply.actions, reply.images.numpy(), strict=True)
             ],
         )
-
-
-def parse_state(task: Any, field: str, obj: Any) -> Any:
-    try:
-        return task.parse_state(obj)
-    except InvalidStateError as exc:
-        raise FieldError(field, str(exc)) from None
 
 
 def plan_query_error(status: int, detail: Any) -> bytes:

@@ -66,6 +66,9 @@ def run_episode(
         if not plan.actions:  # the planner sees start and goal in one region
             episode.reason = "planner_at_goal"
             break
+        if plan.actions[0] is None:  # the APN saw no action between the first two nodes
+            episode.reason = "no_action"
+            break
         try:
             state = world.execute(plan.actions[0], rng)
         except IllegalActionError:

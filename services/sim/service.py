@@ -15,8 +15,8 @@ from shared.bus import Handler
 from shared.client import PlanningClient
 from shared.messages import RenderReply, RenderRequest, RunReply, RunRequest, WireArray, unpack
 from shared.tasks import get_task
-from shared.tasks.base import InvalidStateError, World
-from shared.validation import FieldError, check_task
+from shared.tasks.base import World
+from shared.validation import FieldError, check_images, check_task, parse_state
 
 
 def setup(context: ServiceContext) -> dict[str, Handler]:
@@ -31,18 +31,12 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             worlds[operation] = make_world(name, size)
         return worlds[operation]
 
-    planner = PlanningClient(context.session, name)
-
-    def parse_state(field: str, obj: object):
-        try:
-            return task.parse_state(obj)
-        except InvalidStateError as exc:
-            raise FieldError(field, str(exc)) from None
+    planner = PlanningClient(context.session, name, context.settings.deadline_s)
 
     def render(payload: bytes) -> RenderReply:
         request = unpack(payload, RenderRequest)
         check_task(request.task, name)
-        states = [parse_state(f"states.{i}", s) for i, s in enumerate(request.states)]
+        states = [parse_state(task, f"states.{i}", s) for i, s in enumerate(request.states)]
         rng = np.random.default_rng(request.seed)
         render_world = world("render")
         images = []
@@ -54,13 +48,15 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
     def run(payload: bytes) -> RunReply:
         request = unpack(payload, RunRequest)
         check_task(request.task, name)
-        start = parse_state("start", request.start)
-        goal = None if request.goal_state is None else parse_state("goal_state", request.goal_state)
+        start = parse_state(task, "start", request.start)
+        goal = (
+            None
+            if request.goal_state is None
+            else parse_state(task, "goal_state", request.goal_state)
+        )
         goal_image = None
         if request.goal_image is not None:
-            goal_image = request.goal_image.numpy()
-            if request.goal_image.dtype != "|u1" or goal_image.shape != (size, size, 3):
-                raise FieldError("goal_image", f"expected uint8 ({size}, {size}, 3)")
+            goal_image = check_images("goal_image", request.goal_image, size)
         if (goal is None) == (goal_image is None):
             raise FieldError("goal_state", "give exactly one of goal_state and goal_image")
         episode = run_episode(

@@ -97,7 +97,7 @@ def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
     assert set(services) == {"encoder", "planner", "apn", "sim"}
     assert all(s["status"] == "ok" and len(s["instances"]) == 1 for s in services.values())
     tokens = {str(r.ok.key_expr).split("/")[2] for r in bus.liveliness().get("lsr/alive/**")}
-    assert tokens == {"encoder", "planner", "apn", "sim"}
+    assert tokens == {"encoder", "planner", "apn", "sim", "gateway"}
     assert http.get("/tasks/box_stacking").json()["num_states"] == 288
     assert http.get("/tasks/nope").status_code == 404
     assert http.get("/docs").status_code == 200

@@ -9,6 +9,7 @@ import pytest
 from shared.bus import (
     BusConfig,
     RemoteError,
+    Replicas,
     Server,
     ServiceUnavailable,
     alive_key,
@@ -17,7 +18,7 @@ from shared.bus import (
     open_session,
     service_key,
 )
-from shared.messages import DecodeReply, DecodeRequest, WireArray
+from shared.messages import DecodeReply, DecodeRequest, WireArray, unpack
 from shared.validation import FieldError
 
 
@@ -37,14 +38,13 @@ def network():
         close_quietly(session)
 
 
-def echo_handler(name: str):
+def echo_handler(name: str, calls: list[str]):
     def handle(payload: bytes) -> DecodeReply:
-        request = DecodeRequest.model_validate(__import__("msgpack").unpackb(payload))
-        z = request.latents.numpy()
+        calls.append(name)
+        z = unpack(payload, DecodeRequest).latents.numpy()
         if not np.isfinite(z).all():
             raise FieldError("latents", "contains NaN or infinity")
-        images = np.full((len(z), 2, 2, 3), ord(name[0]), np.uint8)
-        return DecodeReply(images=WireArray.of(images))
+        return DecodeReply(images=WireArray.of(np.full((len(z), 2, 2, 3), ord(name), np.uint8)))
 
     return handle
 
@@ -53,33 +53,34 @@ def request(z: np.ndarray) -> DecodeRequest:
     return DecodeRequest(task="t", latents=WireArray.of(z.astype(np.float32)))
 
 
-def test_replicas_on_one_key_share_the_queries_and_errors_name_the_field(network):
+def test_replicas_share_the_queries_one_answer_each_and_errors_name_the_field(network):
     a, b, caller = network
+    calls: list[str] = []
     servers = [Server(a, "decoder", "a"), Server(b, "decoder", "b")]
     for server in servers:
-        server.serve(service_key("decoder", "t", "decode"), echo_handler(server.instance))
+        server.serve(service_key("decoder", "t", "decode"), echo_handler(server.instance, calls))
+    replicas = Replicas(caller)
     time.sleep(0.3)
-    answered = set()
-    for _ in range(40):
-        reply = call(caller, "decoder", "t", "decode", request(np.zeros((1, 2))), DecodeReply)
-        images = reply.result().images.numpy()
-        assert images.shape == (1, 2, 2, 3)
-        answered.add(chr(images[0, 0, 0, 0]))
-    assert answered == {"a", "b"}  # both serve, and each query got exactly one answer
+
+    def decode(z: np.ndarray, picker: Replicas | None = replicas) -> str:
+        reply = call(caller, "decoder", "t", "decode", request(z), DecodeReply, replicas=picker)
+        return chr(reply.result().images.numpy()[0, 0, 0, 0])
+
+    answered = [decode(np.zeros((1, 2))) for _ in range(40)]
+    assert sorted(calls) == sorted(answered)  # every query was computed exactly once
+    assert answered.count("a") == answered.count("b") == 20  # and the replicas took turns
+    calls.clear()
+    assert decode(np.zeros((1, 2)), picker=None) in "ab" and len(calls) == 1  # the shared key
 
     tokens = [r.ok.key_expr for r in caller.liveliness().get("lsr/alive/decoder/*", timeout=2)]
     assert sorted(str(k) for k in tokens) == [alive_key("decoder", "a"), alive_key("decoder", "b")]
 
-    bad = request(np.array([[np.nan, 0.0]]))
     with pytest.raises(RemoteError, match="latents") as info:
-        call(caller, "decoder", "t", "decode", bad, DecodeReply).result()
+        decode(np.array([[np.nan, 0.0]]))
     assert info.value.error.code == "bad_request" and info.value.error.field == "latents"
 
-    servers[0].close()  # one replica leaves: the other takes every query
-    time.sleep(0.3)
-    for _ in range(5):
-        reply = call(caller, "decoder", "t", "decode", request(np.zeros((1, 2))), DecodeReply)
-        assert chr(reply.result().images.numpy()[0, 0, 0, 0]) == "b"
+    servers[0].close()  # one replica leaves: the other takes every query at once
+    assert [decode(np.zeros((1, 2))) for _ in range(6)] == ["b"] * 6
     servers[1].close()
 
 
@@ -98,16 +99,8 @@ def test_a_silent_service_times_out_within_the_deadline(network):
     time.sleep(0.3)
     started = time.monotonic()
     with pytest.raises(ServiceUnavailable, match="no reply in time"):
-        call(
-            caller,
-            "sleepy",
-            "t",
-            "decode",
-            request(np.zeros((1, 2))),
-            DecodeReply,
-            deadline_s=1.0,
-            attempt_timeout_s=0.5,
-        ).result()
+        pending = call(caller, "sleepy", "t", "decode", request(np.zeros((1, 2))), DecodeReply, 1.0)
+        pending.result()
     assert time.monotonic() - started < 1.5
     server.close()
 

@@ -33,6 +33,8 @@ def test_array_bytes_must_match_shape_and_dtype():
         WireArray(shape=[2, 2], dtype="<f4", data=b"\0" * 12)
     with pytest.raises(ValueError):
         WireArray(shape=[2], dtype="<f8", data=b"\0" * 16)  # float64 does not travel
+    with pytest.raises(ValueError, match="bytes for shape"):  # int64 products would wrap to 0
+        WireArray(shape=[2**32, 2**32], dtype="|u1", data=b"")
     with pytest.raises(TypeError, match="cannot go on the wire"):
         WireArray.of(np.zeros(2, dtype=np.float64))
 
