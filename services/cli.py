@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from shared.settings import SHIPPED_MODEL
 from shared.tasks import get_task, task_names
 
 Handler = Callable[[argparse.Namespace], int]
@@ -495,7 +496,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--host", default="127.0.0.1")
     up.add_argument("--port", type=int, default=8000)
     up.add_argument("--zenoh-port", type=int, default=7447)
-    up.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    up.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="default: the shipped one")
     up.set_defaults(handler=cmd_up)
 
     robot = sub.add_parser("robot", help="an example robot: plans over zenoh, acts in its sim")

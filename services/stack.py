@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import IO
 
 from shared.bus import SERVICES
+from shared.settings import SHIPPED_MODEL
 
 
 @dataclass
@@ -28,7 +29,7 @@ class StackConfig:
     host: str = "127.0.0.1"
     port: int = 8000
     zenoh_port: int = 7447
-    model_dir: Path = Path("models/box_stacking")
+    model_dir: Path = SHIPPED_MODEL
     log_dir: Path | None = None  # None: children write to this terminal
     env: dict[str, str] = field(default_factory=dict)
 
@@ -93,9 +94,19 @@ class Stack:
 
     def start(self) -> None:
         self.start_router()
+        self._wait_for_router()
         for service in SERVICES:
             self.start_service(service)
         self.start_gateway()
+
+    def _wait_for_router(self, timeout_s: float = 15.0) -> None:
+        """The services retry until the router listens, but quietly is nicer."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self.processes["router"].poll() is None:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", self.config.zenoh_port)) == 0:
+                    return
+            time.sleep(0.1)
 
     def health(self, timeout_s: float = 5.0) -> tuple[int, dict]:
         try:
