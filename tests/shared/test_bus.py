@@ -95,7 +95,8 @@ def test_a_missing_service_fails_fast_and_by_name(network):
 def test_a_silent_service_times_out_within_the_deadline(network):
     a, _, caller = network
     server = Server(a, "sleepy", "x")
-    server.serve(service_key("sleepy", "t", "decode"), lambda _: time.sleep(3) or None)
+    late = DecodeReply(images=WireArray.of(np.zeros((1, 2, 2, 3), np.uint8)))
+    server.serve(service_key("sleepy", "t", "decode"), lambda _: time.sleep(3) or late)
     time.sleep(0.3)
     started = time.monotonic()
     with pytest.raises(ServiceUnavailable, match="no reply in time"):
