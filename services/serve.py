@@ -43,7 +43,11 @@ def ping(service: str, settings: Settings, this_host: bool, timeout_s: float = 2
     """Exit 0 when an instance of `service` (on this host, if asked) answers: a health check."""
     config = settings.bus()
     config.open_timeout_s = timeout_s
-    session = open_session(config)
+    try:
+        session = open_session(config)
+    except ConnectionError as exc:
+        print(f"{service}: {exc}", file=sys.stderr)
+        return 1
     instance = f"{host_id()}-$*" if this_host else "*"
     asked = [instances(session, service, task, instance, timeout_s) for task in settings.tasks]
     found = [info for collect in asked for info in collect()]

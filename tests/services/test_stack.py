@@ -103,6 +103,17 @@ def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
     assert http.get("/docs").status_code == 200
 
 
+def test_ping_is_a_health_check_for_the_instances_of_this_host(stack):
+    def ping(*args: str, endpoint: str = stack.config.endpoint) -> subprocess.CompletedProcess:
+        command = [sys.executable, "-m", "services.cli", "ping", *args, "--connect", endpoint]
+        return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+    here = ping("planner", "--this-host")
+    assert here.returncode == 0 and "planner" in here.stdout, here.stderr
+    nowhere = ping("planner", "--timeout", "0.5", endpoint=f"tcp/127.0.0.1:{free_port()}")
+    assert nowhere.returncode == 1 and "no zenoh router" in nowhere.stderr
+
+
 def test_plan_from_states(http):
     reply = http.post(
         "/plan",
