@@ -18,9 +18,8 @@ import zenoh
 
 from services.sim.closed_loop import Episode, run_episode
 from services.sim.worlds import make_world
-from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, robot_plan_key, service_key
+from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, instances, robot_plan_key
 from shared.images import encode_png
-from shared.messages import InfoReply, unpack
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
 
@@ -101,10 +100,10 @@ class RobotPlanner:
 
 
 def image_size(session: zenoh.Session, task: str, timeout_s: float = 5.0) -> int:
-    for reply in session.get(service_key("encoder", task, "info/*"), timeout=timeout_s):
-        if reply.ok is not None:
-            return unpack(reply.ok.payload.to_bytes(), InfoReply).image_size
-    raise ServiceUnavailable("encoder", "no instance answered; is the stack up?")
+    found = instances(session, "encoder", task, timeout_s=timeout_s)()
+    if not found:
+        raise ServiceUnavailable("encoder", "no instance answered; is the stack up?")
+    return found[0].image_size
 
 
 def run_robot(
