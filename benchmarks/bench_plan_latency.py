@@ -10,9 +10,7 @@ in-process ActionPlanner on the same requests (torch on one thread, as each serv
 from __future__ import annotations
 
 import argparse
-import base64
 import json
-import socket
 import sys
 import tempfile
 import time
@@ -26,17 +24,12 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from services.gateway.planning import decode_b64_image  # noqa: E402
 from services.planner.action_plans import ActionPlanner  # noqa: E402
 from services.sim.worlds import make_world  # noqa: E402
-from services.stack import Stack, StackConfig  # noqa: E402
-from shared.images import PngCache, decode_image, encode_png  # noqa: E402
+from services.stack import Stack, StackConfig, free_port  # noqa: E402
+from shared.images import PngCache, png_b64  # noqa: E402
 from shared.tasks import get_task  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def percentiles(seconds: list[float]) -> dict[str, float]:
@@ -57,7 +50,7 @@ def request_bodies(pairs: int, size: int, seed: int) -> list[dict]:
             images = []
             for state in (task.sample_state(rng), task.sample_state(rng)):
                 world.reset(state, rng)
-                images.append(base64.b64encode(encode_png(world.render())).decode())
+                images.append(png_b64(world.render()))
             bodies.append(
                 {
                     "task": "box_stacking",
@@ -78,8 +71,8 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
     for i in range(repeats + len(bodies)):  # the first pass over the bodies warms the caches
         body = bodies[i % len(bodies)]
         t0 = time.perf_counter()
-        start = decode_image(base64.b64decode(body["start"]["image"]), planner.image_size)
-        goal = decode_image(base64.b64decode(body["goal"]["image"]), planner.image_size)
+        start = decode_b64_image("start.image", body["start"]["image"], planner.image_size)
+        goal = decode_b64_image("goal.image", body["goal"]["image"], planner.image_size)
         t1 = time.perf_counter()
         plans = planner.plan(start, goal, body["max_plans"])
         t2 = time.perf_counter()

@@ -7,7 +7,6 @@ The robot's body is its own MuJoCo world. After every action it looks (renders),
 
 from __future__ import annotations
 
-import base64
 import json
 import queue
 import time
@@ -19,7 +18,7 @@ import zenoh
 from services.sim.closed_loop import Episode, run_episode
 from services.sim.worlds import make_world
 from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, instances, robot_plan_key
-from shared.images import encode_png
+from shared.images import png_b64
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
 
@@ -46,8 +45,8 @@ class RobotPlanner:
     ) -> list[VisualActionPlan]:
         body = {
             "task": self.task_name,
-            "start": {"image": base64.b64encode(encode_png(start)).decode()},
-            "goal": {"image": base64.b64encode(encode_png(goal)).decode()},
+            "start": {"image": png_b64(start)},
+            "goal": {"image": png_b64(goal)},
             "max_plans": max_plans,
             "robot_id": self.robot_id,
             "include_images": False,

@@ -164,6 +164,13 @@ class Stack:
         self.stop_all()
 
 
+def free_port() -> int:
+    """A loopback port nobody listens on now (for tests and benchmarks)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
 def check_ports_free(config: StackConfig) -> None:
     """A stack already running on these ports would answer our health checks: refuse to start."""
     for host, port, what in (

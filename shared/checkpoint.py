@@ -11,22 +11,28 @@ class CheckpointError(ValueError):
     """A model folder that is missing or malformed; the message names the file."""
 
 
+def read_versioned_json(
+    path: Path, fmt: str, version: int, kind: str, error: type[ValueError] = CheckpointError
+) -> dict[str, Any]:
+    """A JSON file that says which format and version it is (configs, dataset manifests)."""
+    if not path.is_file():
+        raise error(f"{path.parent}: no {path.name}, not {kind} folder")
+    try:
+        document = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise error(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(document, dict):
+        raise error(f"{path}: not a {fmt} v{version} document")
+    if document.get("format") != fmt:
+        raise error(f"{path}: format {document.get('format')!r}, expected {fmt!r}")
+    if document.get("version") != version:
+        raise error(f"{path}: version {document.get('version')!r}, expected {version}")
+    return document
+
+
 def read_config(directory: Path | str, fmt: str, version: int, kind: str) -> dict[str, Any]:
     """config.json of a `kind` folder, checked to be of format `fmt` and `version`."""
-    path = Path(directory) / "config.json"
-    if not path.is_file():
-        raise CheckpointError(f"{directory}: no config.json, not {kind} folder")
-    try:
-        config = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{path}: not valid JSON ({exc})") from None
-    if (
-        not isinstance(config, dict)
-        or config.get("format") != fmt
-        or config.get("version") != version
-    ):
-        raise CheckpointError(f"{path}: not a {fmt} v{version} config")
-    return config
+    return read_versioned_json(Path(directory) / "config.json", fmt, version, kind)
 
 
 def weights_file(directory: Path | str, name: str) -> Path:

@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from shared.checkpoint import read_versioned_json
+
 FORMAT = "lsr-dataset"
 VERSION = 1
 FIELDS = ("image1", "image2", "a", "u", "state1", "state2")
@@ -79,19 +81,8 @@ def read_shard(path: Path) -> dict[str, np.ndarray]:
 
 
 def read_manifest(directory: Path | str) -> dict[str, Any]:
-    directory = Path(directory)
-    path = directory / "manifest.json"
-    if not path.is_file():
-        raise DatasetError(f"{directory}: no manifest.json, not a dataset folder")
-    try:
-        manifest = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path}: not valid JSON ({exc})") from None
-    if manifest.get("format") != FORMAT:
-        raise DatasetError(f"{path}: format {manifest.get('format')!r}, expected {FORMAT!r}")
-    if manifest.get("version") != VERSION:
-        raise DatasetError(f"{path}: version {manifest.get('version')!r}, expected {VERSION}")
-    return manifest
+    path = Path(directory) / "manifest.json"
+    return read_versioned_json(path, FORMAT, VERSION, "a dataset", DatasetError)
 
 
 def iter_shards(directory: Path | str, verify: bool = True) -> Iterator[dict[str, np.ndarray]]:

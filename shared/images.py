@@ -23,6 +23,11 @@ def encode_png(image: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
+def png_b64(image: np.ndarray) -> str:
+    """An image as base64 PNG text, as JSON bodies carry it."""
+    return base64.b64encode(encode_png(image)).decode("ascii")
+
+
 class PngCache:
     """base64 PNGs of images seen before: roadmap node images recur in every plan and request."""
 
@@ -38,7 +43,7 @@ class PngCache:
             if key in self._encoded:
                 self._encoded.move_to_end(key)
                 return self._encoded[key]
-        encoded = base64.b64encode(encode_png(image)).decode("ascii")
+        encoded = png_b64(image)
         with self._lock:
             self._encoded[key] = encoded
             while len(self._encoded) > self.capacity:

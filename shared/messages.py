@@ -7,7 +7,7 @@ shape and dtype, so a 64x64 image costs 12 KiB plus a few bytes of header, not a
 from __future__ import annotations
 
 import math
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 import msgpack
 import numpy as np
@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 SCHEMA_VERSION = 1
 MAX_PLANS = 64
-ALLOWED_DTYPES = {"|u1": np.uint8, "<f4": np.float32, "<i8": np.int64}
+WireDtype = Literal["|u1", "<f4", "<i8"]  # uint8 images, float32 latents, int64 ids
 
 
 class MessageError(ValueError):
@@ -28,7 +28,7 @@ class WireArray(BaseModel):
     model_config = ConfigDict(frozen=True)
 
     shape: list[int] = Field(max_length=8)
-    dtype: Literal["|u1", "<f4", "<i8"]
+    dtype: WireDtype
     data: bytes
 
     @model_validator(mode="after")
@@ -44,7 +44,7 @@ class WireArray(BaseModel):
     def of(cls, array: np.ndarray) -> WireArray:
         array = np.asarray(array)
         dtype = np.dtype(array.dtype).newbyteorder("<")
-        if dtype.str not in ALLOWED_DTYPES:
+        if dtype.str not in get_args(WireDtype):
             raise TypeError(f"dtype {array.dtype} cannot go on the wire")
         return cls(shape=list(array.shape), dtype=dtype.str, data=array.astype(dtype).tobytes())
 

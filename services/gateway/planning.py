@@ -28,17 +28,13 @@ from services.gateway.schemas import (
 )
 from shared.bus import JSON, SERVICES, ServiceUnavailable, instances, robot_plan_key
 from shared.client import PlanningClient
-from shared.images import ImageError, PngCache, decode_image, encode_png
+from shared.images import ImageError, PngCache, decode_image, png_b64
 from shared.messages import InfoReply, RunRequest, WireArray
 from shared.settings import Settings
 from shared.tasks import get_task
 from shared.validation import FieldError, parse_state
 
 INFO_TTL_S = 10.0
-
-
-def png_b64(image: np.ndarray) -> str:
-    return base64.b64encode(encode_png(image)).decode("ascii")
 
 
 def decode_b64_image(field: str, text: str, size: int) -> np.ndarray:
@@ -113,10 +109,10 @@ class Gateway:
     ) -> dict[str, np.ndarray]:
         """Decode the image endpoints, render the state endpoints (in one sim call)."""
         logic = get_task(task)
-        size = self.image_size(task)
         images, states = {}, {}
         for name, endpoint in endpoints.items():
-            if endpoint.image is not None:
+            if endpoint.image is not None:  # the size is asked of the encoder only then
+                size = self.image_size(task)
                 images[name] = decode_b64_image(f"{name}.image", endpoint.image, size)
             else:
                 states[name] = parse_state(logic, f"{name}.state", endpoint.state)
@@ -136,11 +132,7 @@ class Gateway:
             plans=[
                 Plan(
                     images=[self.pngs.b64(image) for image in plan.images],
-                    actions=[
-                        None if a is None else client.task.action_to_json(a) for a in plan.actions
-                    ],
-                    nodes=plan.nodes,
-                    confidences=[round(c, 6) for c in plan.confidences],
+                    **plan.to_json(client.task),
                 )
                 for plan in plans
             ],

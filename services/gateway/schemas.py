@@ -54,7 +54,7 @@ class PlanRequest(TaskRequest):
 
 class Plan(BaseModel):
     images: list[str] = Field(description="PNG base64, start to goal; empty without images")
-    actions: list[dict[str, Any] | None]
+    actions: list[dict[str, Any]]
     nodes: list[int]
     confidences: list[float] = Field(description="the APN's confidence in each action")
 

@@ -10,32 +10,24 @@ import base64
 import io
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 from PIL import Image
 
-from services.stack import Stack, StackConfig, check_ports_free
+from services.stack import Stack, StackConfig, check_ports_free, free_port
 from shared.bus import API_PLAN_KEY, JSON, BusConfig, close_quietly, open_session
-from shared.images import encode_png
 from shared.tasks import get_task
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
 TASK = get_task("box_stacking")
 START = {"stacks": [["red", "green"], ["blue"], ["yellow"]]}
 GOAL = {"stacks": [[], ["yellow", "green", "red"], ["blue"]]}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOAL}}
 
 
 @pytest.fixture(scope="module")
@@ -63,10 +55,6 @@ def bus(stack):
     session = open_session(BusConfig(connect=[stack.config.endpoint], open_timeout_s=10))
     yield session
     close_quietly(session)
-
-
-def png_b64(image: np.ndarray) -> str:
-    return base64.b64encode(encode_png(image)).decode()
 
 
 def render(http: httpx.Client, state: dict, seed: int = 0) -> str:
@@ -117,12 +105,7 @@ def test_ping_is_a_health_check_for_the_instances_of_this_host(stack):
 def test_plan_from_states(http):
     reply = http.post(
         "/plan",
-        json={
-            "task": "box_stacking",
-            "start": {"state": START},
-            "goal": {"state": GOAL},
-            "max_plans": 3,
-        },
+        json={**GOOD, "max_plans": 3},
     )
     assert reply.status_code == 200, reply.text
     body = reply.json()
@@ -150,13 +133,7 @@ def test_zenoh_query_and_robot_publication(bus):
         "lsr/robot/arm-7/plan", lambda s: received.append(json.loads(s.payload.to_bytes()))
     )
     time.sleep(0.3)
-    request = {
-        "task": "box_stacking",
-        "start": {"state": START},
-        "goal": {"state": GOAL},
-        "robot_id": "arm-7",
-        "include_images": False,
-    }
+    request = {**GOOD, "robot_id": "arm-7", "include_images": False}
     replies = list(bus.get(API_PLAN_KEY, payload=json.dumps(request), encoding=JSON, timeout=10))
     assert len(replies) == 1 and replies[0].ok is not None
     assert str(replies[0].ok.encoding) == "application/json"
@@ -175,12 +152,7 @@ def test_zenoh_query_and_robot_publication(bus):
 def test_plan_from_a_state_to_itself_has_no_action(http):
     reply = http.post(
         "/plan",
-        json={
-            "task": "box_stacking",
-            "start": {"state": START},
-            "goal": {"state": START},
-            "include_images": False,
-        },
+        json={**GOOD, "goal": {"state": START}, "include_images": False},
     )
     assert reply.status_code == 200
     plans = reply.json()["plans"]
@@ -193,7 +165,6 @@ def image_of(size: tuple[int, int], mode: str = "RGB", fmt: str = "PNG") -> str:
     return base64.b64encode(buffer.getvalue()).decode()
 
 
-GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOAL}}
 BAD_INPUTS = [
     ("malformed JSON", b'{"task": "box_stacking",', 422, None),
     ("not an object", [1, 2], 422, None),
@@ -251,12 +222,7 @@ def test_bad_input_on_the_other_routes(http):
     assert (
         http.post(
             "/execute",
-            json={
-                "task": "box_stacking",
-                "start": {"state": START},
-                "goal": {"state": GOAL},
-                "max_steps": 10_000,
-            },
+            json={**GOOD, "max_steps": 10_000},
         ).status_code
         == 422
     )
@@ -271,12 +237,7 @@ def test_bad_input_on_the_other_routes(http):
 def test_execute_reaches_the_goal(http):
     reply = http.post(
         "/execute",
-        json={
-            "task": "box_stacking",
-            "start": {"state": START},
-            "goal": {"state": GOAL},
-            "seed": 3,
-        },
+        json={**GOOD, "seed": 3},
     )
     assert reply.status_code == 200, reply.text
     body = reply.json()

@@ -1,11 +1,11 @@
 """Real zenoh sessions on a loopback port: a router and clients, all in this process."""
 
-import socket
 import time
 
 import numpy as np
 import pytest
 
+from services.stack import free_port
 from shared.bus import (
     BusConfig,
     RemoteError,
@@ -20,12 +20,6 @@ from shared.bus import (
 )
 from shared.messages import DecodeReply, DecodeRequest, WireArray, unpack
 from shared.validation import FieldError
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
