@@ -67,14 +67,16 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
     torch.set_num_threads(1)
     planner = ActionPlanner.from_model_dir(model)
     pngs = PngCache()  # as the gateway does
-    core, whole = [], []
+    encode, core, whole = [], [], []
     for i in range(repeats + len(bodies)):  # the first pass over the bodies warms the caches
         body = bodies[i % len(bodies)]
         t0 = time.perf_counter()
         start = decode_b64_image("start.image", body["start"]["image"], planner.image_size)
         goal = decode_b64_image("goal.image", body["goal"]["image"], planner.image_size)
         t1 = time.perf_counter()
-        plans = planner.plan(start, goal, body["max_plans"])
+        z = planner.planner.encode(np.stack([start, goal]))  # ActionPlanner.plan, in two steps
+        t_encoded = time.perf_counter()
+        plans = planner.plan_latent(z[0], z[1], body["max_plans"])
         t2 = time.perf_counter()
         json.dumps(
             [
@@ -84,14 +86,25 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
         )
         t3 = time.perf_counter()
         if i >= len(bodies):
+            encode.append(t_encoded - t1)
             core.append(t2 - t1)
             whole.append(t3 - t0)
-    return {"encode_search_decode_apn": percentiles(core), "with_image_codecs": percentiles(whole)}
+    return {
+        "encode": percentiles(encode),
+        "encode_search_decode_apn": percentiles(core),
+        "with_image_codecs": percentiles(whole),
+    }
+
+
+def server_timing(header: str) -> dict[str, float]:
+    return {name: float(ms) for name, ms in (m.split(";dur=") for m in header.split(", "))}
 
 
 def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int) -> dict:
+    """Latency and throughput; at p50, where the time went (the gateway's Server-Timing)."""
     errors: dict[str, int] = {}
     latencies: list[float] = []
+    timings: list[dict[str, float]] = []
 
     def worker(indices: range) -> None:
         with httpx.Client(base_url=url, timeout=30) as client:
@@ -106,11 +119,14 @@ def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int)
                     key = type(exc).__name__
                 if key == "ok":
                     latencies.append(latency)
+                    timing = server_timing(reply.headers["server-timing"])
+                    timings.append({**timing, "http_and_client": latency * 1e3 - timing["gateway"]})
                 else:
                     errors[key] = errors.get(key, 0) + 1
 
     worker(range(len(bodies)))  # warm-up: every node decoded once, connections open
     latencies.clear()
+    timings.clear()
     errors.clear()
     started = time.perf_counter()
     chunks = [range(k, requests, concurrency) for k in range(concurrency)]
@@ -124,6 +140,10 @@ def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int)
         "error_kinds": errors,
         "requests_per_s": round(requests / elapsed, 1),
         **percentiles(latencies),
+        "p50_breakdown_ms": {
+            name: round(float(np.median([t[name] for t in timings if name in t])), 2)
+            for name in dict.fromkeys(name for t in timings for name in t)
+        },
     }
 
 

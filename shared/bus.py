@@ -23,7 +23,16 @@ from dataclasses import dataclass, field
 import zenoh
 from pydantic import BaseModel
 
-from shared.messages import ErrorReply, InfoReply, M, MessageError, pack, unpack
+from shared.messages import (
+    CallBudget,
+    ErrorReply,
+    InfoReply,
+    M,
+    MessageError,
+    ReplyMeta,
+    pack,
+    unpack,
+)
 from shared.tasks.base import TaskError
 from shared.validation import FieldError
 
@@ -161,6 +170,13 @@ class Replicas:
                 self._alive[service].remove(instance)
 
 
+@dataclass(frozen=True)
+class CallTiming:
+    operation: str
+    round_trip_ms: float  # as the caller saw it
+    handler_ms: float | None  # inside the service, as its reply says
+
+
 @dataclass
 class PendingCall:
     """A query on its way; `result()` waits for the reply. Lets callers run queries in parallel.
@@ -181,20 +197,35 @@ class PendingCall:
     replicas: Replicas | None = None
     instance: str | None = field(init=False, default=None)
     replies: object = field(init=False)
+    sent_at: float = field(init=False, default=0.0)
+    round_trip_ms: float | None = field(init=False, default=None)  # of the answered query
+    served: ReplyMeta | None = field(init=False, default=None)  # the answer's attachment
 
     def __post_init__(self) -> None:
         self._send()
 
     def _send(self) -> None:
         self.instance = self.replicas.pick(self.service) if self.replicas else None
+        budget_s = max(0.05, self.deadline - time.monotonic())
+        self.sent_at = time.perf_counter()
         self.replies = self.session.get(
             f"{self.key}/{self.instance}" if self.instance else self.key,
             payload=self.payload,
             encoding=MSGPACK,
+            attachment=pack(CallBudget(budget_ms=int(budget_s * 1e3))),
             target=zenoh.QueryTarget.BEST_MATCHING,
             congestion_control=zenoh.CongestionControl.BLOCK,
-            timeout=max(0.05, self.deadline - time.monotonic()),
+            express=True,  # sent at once, not batched: each call is on a request's critical path
+            timeout=budget_s,
         )
+
+    @property
+    def timing(self) -> CallTiming | None:
+        """How long the answered query took, and its handler; None before an answer."""
+        if self.round_trip_ms is None:
+            return None
+        handler_ms = None if self.served is None else self.served.handler_ms
+        return CallTiming(self.key.rsplit("/", 1)[-1], self.round_trip_ms, handler_ms)
 
     def result(self) -> BaseModel:
         unserved_since: float | None = None
@@ -202,6 +233,8 @@ class PendingCall:
             started = time.monotonic()
             for reply in self.replies:  # type: ignore[attr-defined]
                 if reply.ok is not None:
+                    self.round_trip_ms = (time.perf_counter() - self.sent_at) * 1e3
+                    self.served = _meta(reply.ok.attachment)
                     return _decode(self.service, reply.ok.payload.to_bytes(), self.reply_type)
                 if reply.err.encoding != MSGPACK:  # zenoh's own "Timeout": no answer came
                     continue
@@ -219,6 +252,13 @@ class PendingCall:
                 raise ServiceUnavailable(self.service, f"no instance serves {self.key}")
             time.sleep(0.02)
             self._send()
+
+
+def _meta(attachment: zenoh.ZBytes | None) -> ReplyMeta | None:
+    try:
+        return None if attachment is None else unpack(attachment.to_bytes(), ReplyMeta)
+    except MessageError:
+        return None
 
 
 def _decode(service: str, payload: bytes, kind: type[M]) -> M:
@@ -277,13 +317,26 @@ def instances(
 
 
 Handler = Callable[[bytes], BaseModel]
+Pending = queue.Queue[tuple[float, zenoh.Query] | None]
+
+
+def budget_s(query: zenoh.Query) -> float:
+    """How long the caller waits for this query; without a readable budget, for ever."""
+    if query.attachment is None:
+        return float("inf")
+    try:
+        return unpack(query.attachment.to_bytes(), CallBudget).budget_ms / 1e3
+    except MessageError:
+        return float("inf")
 
 
 class Server:
     """Declares queryables for one service instance, each served by its own worker thread.
 
     Handlers raise MessageError or ValueError for a bad request; anything else is internal.
-    Work happens off zenoh's callback threads, so a slow handler never stalls the network.
+    Work happens off zenoh's callback threads, so a slow handler never stalls the network. A query
+    still queued when its caller's budget (`CallBudget`) has run out is dropped unanswered: under
+    overload the queue drains instead of computing replies nobody waits for.
     """
 
     def __init__(self, session: zenoh.Session, service: str, instance: str) -> None:
@@ -292,24 +345,35 @@ class Server:
         self.instance = instance
         self.token = session.liveliness().declare_token(alive_key(service, instance))
         self._queryables: list[zenoh.Queryable] = []
-        self._queues: list[queue.Queue[zenoh.Query | None]] = []
+        self._queues: list[Pending] = []
+        self.expired = 0  # queries dropped because their caller had stopped waiting
 
     def serve(self, key: str, handler: Handler, per_instance: bool = True) -> None:
         """Answer `key` (as a complete queryable) and, for callers that pick, `key/instance`."""
-        pending: queue.Queue[zenoh.Query | None] = queue.Queue()
+        pending: Pending = queue.Queue()
+
+        def arrived(query: zenoh.Query) -> None:
+            pending.put((time.monotonic(), query))
+
         keys = [key, f"{key}/{self.instance}"] if per_instance else [key]
         for k in keys:
-            self._queryables.append(self.session.declare_queryable(k, pending.put, complete=True))
+            self._queryables.append(self.session.declare_queryable(k, arrived, complete=True))
         self._queues.append(pending)
         threading.Thread(target=self._loop, args=(pending, handler), name=key, daemon=True).start()
 
-    def _loop(self, pending: queue.Queue[zenoh.Query | None], handler: Handler) -> None:
-        while (query := pending.get()) is not None:
-            try:
-                answer(query, handler, self.service)
-            except Exception:  # a reply that could not be sent must not end the worker
-                log.exception("%s could not answer %s", self.service, query.key_expr)
-            del query  # a query is finished when dropped: callers waiting on ALL see it at once
+    def _loop(self, pending: Pending, handler: Handler) -> None:
+        while (item := pending.get()) is not None:
+            arrived, query = item
+            if time.monotonic() - arrived > budget_s(query):
+                self.expired += 1
+                if self.expired == 1 or self.expired % 100 == 0:
+                    log.warning("%s: %d queries expired in the queue", self.service, self.expired)
+            else:
+                try:
+                    answer(query, handler, self.service, self.instance)
+                except Exception:  # a reply that could not be sent must not end the worker
+                    log.exception("%s could not answer %s", self.service, query.key_expr)
+            del item, query  # a query is finished when dropped: callers waiting on ALL see it
 
     def close(self) -> None:
         for queryable in self._queryables:
@@ -319,8 +383,9 @@ class Server:
         self.token.undeclare()
 
 
-def answer(query: zenoh.Query, handler: Handler, service: str) -> None:
+def answer(query: zenoh.Query, handler: Handler, service: str, instance: str) -> None:
     """Run `handler` on a query's payload and reply with its message or an ErrorReply."""
+    started = time.perf_counter()
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
         reply = pack(handler(payload))
@@ -332,7 +397,9 @@ def answer(query: zenoh.Query, handler: Handler, service: str) -> None:
         log.exception("%s failed on %s", service, query.key_expr)
         error = ErrorReply(code="internal", message=f"{type(exc).__name__}: {exc}")
     else:
-        query.reply(query.key_expr, reply, encoding=MSGPACK)  # congestion: the query's
+        meta = ReplyMeta(instance=instance, handler_ms=(time.perf_counter() - started) * 1e3)
+        # congestion control: the query's
+        query.reply(query.key_expr, reply, encoding=MSGPACK, attachment=pack(meta), express=True)
         return
     query.reply_err(pack(error), encoding=MSGPACK)
 

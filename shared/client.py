@@ -2,18 +2,20 @@
 
 `plan()` does the work of the in-process ActionPlanner (encode, roadmap search, decode, APN) as
 queries: encode and search one after the other, then decoding and action proposal in parallel.
+Like the ActionPlanner, it decodes each roadmap node once: the images are kept by model and latent.
 """
 
 from __future__ import annotations
 
 import itertools
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import zenoh
 from pydantic import BaseModel
 
-from shared.bus import PendingCall, Replicas, call
+from shared.bus import CallTiming, PendingCall, Replicas, call
+from shared.lru import LruCache
 from shared.messages import (
     DecodeReply,
     DecodeRequest,
@@ -34,6 +36,12 @@ from shared.plans import VisualActionPlan
 from shared.tasks import get_task
 
 
+class PlanOutcome(NamedTuple):
+    plans: list[VisualActionPlan]
+    reason: str | None  # why there are no plans
+    timings: list[CallTiming]  # the service calls it took, in order
+
+
 class PlanningClient:
     def __init__(self, session: zenoh.Session, task: str, deadline_s: float = 4.5) -> None:
         self.session = session
@@ -41,6 +49,7 @@ class PlanningClient:
         self.task = get_task(task)
         self.deadline_s = deadline_s
         self.replicas = Replicas(session)
+        self.node_images: LruCache[tuple[str, bytes], np.ndarray] = LruCache()
 
     def _call(
         self,
@@ -68,24 +77,23 @@ class PlanningClient:
         reply: RenderReply = self._call("sim", "render", request, RenderReply).result()
         return reply.images.numpy()
 
-    def encode(self, images: np.ndarray) -> np.ndarray:
-        request = EncodeRequest(task=self.task_name, images=WireArray.of(images))
-        reply: EncodeReply = self._call("encoder", "encode", request, EncodeReply).result()
-        return reply.latents.numpy()
-
     def plan_with_reason(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, include_images: bool = True
-    ) -> tuple[list[VisualActionPlan], str | None]:
-        z_start, z_goal = self.encode(np.stack([start, goal]))
+    ) -> PlanOutcome:
+        images_in = EncodeRequest(task=self.task_name, images=WireArray.of(np.stack([start, goal])))
+        encoding = self._call("encoder", "encode", images_in, EncodeReply)
+        z_start, z_goal = encoding.result().latents.numpy()
         search = PathsRequest(
             task=self.task_name,
             z_start=WireArray.of(z_start),
             z_goal=WireArray.of(z_goal),
             max_plans=max_plans,
         )
-        found: PathsReply = self._call("planner", "paths", search, PathsReply).result()
+        searching = self._call("planner", "paths", search, PathsReply)
+        found: PathsReply = searching.result()
+        calls = [encoding, searching]
         if not found.paths:
-            return [], found.reason
+            return PlanOutcome([], found.reason, timings(calls))
         latents = dict(zip(found.node_ids, found.node_latents.numpy(), strict=True))
         steps = list(dict.fromkeys((a, b) for p in found.paths for a, b in itertools.pairwise(p)))
         proposing = decoding = None
@@ -96,9 +104,24 @@ class PlanningClient:
                 z_to=WireArray.of(np.stack([latents[b] for _, b in steps])),
             )
             proposing = self._call("apn", "propose", propose, ProposeReply)
+            calls.append(proposing)
+        images: dict[int, np.ndarray] = {}
+        missing: list[tuple[int, tuple[str, bytes]]] = []
         if include_images:
-            decode = DecodeRequest(task=self.task_name, latents=found.node_latents)
+            for node, latent in zip(found.node_ids, found.node_latents.numpy(), strict=True):
+                key = (found.model_id, latent.tobytes())
+                image = self.node_images.get(key)
+                if image is None:
+                    missing.append((node, key))
+                else:
+                    images[node] = image
+        if missing:
+            decode = DecodeRequest(
+                task=self.task_name,
+                latents=WireArray.of(np.stack([latents[node] for node, _ in missing])),
+            )
             decoding = self._call("encoder", "decode", decode, DecodeReply)
+            calls.append(decoding)
         proposed: dict[tuple[int, int], tuple[Any, float]] = {}
         if proposing is not None:
             reply: ProposeReply = proposing.result()
@@ -107,10 +130,11 @@ class PlanningClient:
             ):
                 parsed = None if action is None else self.task.parse_action(action)
                 proposed[step] = (parsed, confidence)
-        images: dict[int, np.ndarray] = {}
         if decoding is not None:
             decoded: DecodeReply = decoding.result()
-            images = dict(zip(found.node_ids, decoded.images.numpy(), strict=True))
+            for (node, key), image in zip(missing, decoded.images.numpy(), strict=True):
+                self.node_images.put(key, image)
+                images[node] = image
         plans = []
         for path in found.paths:
             pairs = [proposed[(a, b)] for a, b in itertools.pairwise(path)]
@@ -124,14 +148,19 @@ class PlanningClient:
                     confidences=[confidence for _, confidence in pairs],
                 )
             )
-        return plans, None if plans else "the APN proposed no action for a step of every path"
+        reason = None if plans else "the APN proposed no action for a step of every path"
+        return PlanOutcome(plans, reason, timings(calls))
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, include_images: bool = False
     ) -> list[VisualActionPlan]:
         """The closed loop's Planner protocol: plans only, no decoded images unless asked."""
-        return self.plan_with_reason(start, goal, max_plans, include_images)[0]
+        return self.plan_with_reason(start, goal, max_plans, include_images).plans
 
     def run(self, request: RunRequest, deadline_s: float) -> RunReply:
         """A closed-loop episode in a sim instance; it plans through this same network."""
         return self._call("sim", "run", request, RunReply, deadline_s=deadline_s).result()
+
+
+def timings(calls: list[PendingCall]) -> list[CallTiming]:
+    return [call.timing for call in calls if call.timing is not None]

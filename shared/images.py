@@ -5,12 +5,12 @@ from __future__ import annotations
 import base64
 import hashlib
 import io
-import threading
-from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
 from PIL import Image, ImageDraw
+
+from shared.lru import LruCache
 
 
 class ImageError(ValueError):
@@ -32,22 +32,15 @@ class PngCache:
     """base64 PNGs of images seen before: roadmap node images recur in every plan and request."""
 
     def __init__(self, capacity: int = 4096) -> None:
-        self.capacity = capacity
-        self._encoded: OrderedDict[bytes, str] = OrderedDict()
-        self._lock = threading.Lock()
+        self._encoded: LruCache[bytes, str] = LruCache(capacity)
 
     def b64(self, image: np.ndarray) -> str:
         key = hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).digest()
         key += bytes(str(image.shape), "ascii")
-        with self._lock:
-            if key in self._encoded:
-                self._encoded.move_to_end(key)
-                return self._encoded[key]
-        encoded = png_b64(image)
-        with self._lock:
-            self._encoded[key] = encoded
-            while len(self._encoded) > self.capacity:
-                self._encoded.popitem(last=False)
+        encoded = self._encoded.get(key)
+        if encoded is None:
+            encoded = png_b64(image)
+            self._encoded.put(key, encoded)
         return encoded
 
 

@@ -90,6 +90,7 @@ class PathsReply(Message):
     paths: list[list[int]]  # roadmap node ids, start to goal, all shortest paths (bounded)
     node_ids: list[int]  # every node on some path, once
     node_latents: WireArray  # float32 (len(node_ids), D)
+    model_id: str  # the planner's model: callers may keep node images decoded for it
     reason: str | None = None  # why `paths` is empty
 
 
@@ -143,6 +144,19 @@ class InfoReply(Message):
     latent_dim: int
     pid: int
     uptime_s: float
+
+
+class CallBudget(Message):
+    """Attached to every service query: how long its caller waits (queued longer: dropped)."""
+
+    budget_ms: int = Field(ge=0)
+
+
+class ReplyMeta(Message):
+    """Attached to every service reply: who answered, and how long its handler took."""
+
+    instance: str
+    handler_ms: float
 
 
 class ErrorReply(Message):

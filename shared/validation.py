@@ -39,7 +39,7 @@ def check_images(
         )
     if max_rows is not None and not 1 <= len(images) <= max_rows:
         raise FieldError(field, f"1 to {max_rows} images per request, got {len(images)}")
-    return images
+    return images.copy()  # writable, as torch wants it; the wire's buffer is read-only
 
 
 def check_task(requested: str, served: str) -> None:
@@ -59,4 +59,4 @@ def check_latents(
         raise FieldError(field, f"1 to {max_rows} rows per request, got {len(z)}")
     if not np.isfinite(z).all():
         raise FieldError(field, "contains NaN or infinity")
-    return z
+    return z.copy()  # writable, as torch wants it; the wire's buffer is read-only

@@ -130,7 +130,7 @@ def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[],
 def answer_plan_query(query: zenoh.Query, gateway: Gateway) -> None:
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
-        response = gateway.plan(PlanRequest.model_validate_json(payload))
+        response, _ = gateway.plan(PlanRequest.model_validate_json(payload))
     except Exception as exc:
         known = error_body(exc)
         if known is None:
@@ -195,8 +195,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def plan(body: PlanRequest, request: Request) -> Response:
         # Serialised by pydantic-core in one pass: plans carry many images, and FastAPI's own
         # re-validation of the returned model would cost more than the planning.
-        response = gateway(request).plan(body)
-        return Response(response.model_dump_json(), media_type="application/json")
+        response, timing = gateway(request).plan(body)
+        headers = {"Server-Timing": timing}
+        return Response(response.model_dump_json(), media_type="application/json", headers=headers)
 
     @app.post("/execute")
     def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:

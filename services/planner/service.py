@@ -33,6 +33,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             paths=found,
             node_ids=node_ids,
             node_latents=WireArray.of(roadmap.nodes[node_ids].astype(np.float32).reshape(-1, dim)),
+            model_id=context.model.model_id,
             reason=None if found else "start and goal are not connected in the roadmap",
         )
 

@@ -111,6 +111,9 @@ def test_plan_from_states(http):
     body = reply.json()
     assert len(body["plans"]) <= 3 and body["reason"] is None
     assert_plans_lead_from(START, GOAL, body)
+    timing = dict(m.split(";dur=") for m in reply.headers["server-timing"].split(", "))
+    assert {"encode", "encode-handler", "paths", "propose", "gateway"} <= timing.keys()
+    assert float(timing["encode-handler"]) < float(timing["encode"]) < float(timing["gateway"])
 
 
 def test_plan_from_images(http):

@@ -100,6 +100,29 @@ def test_a_silent_service_times_out_within_the_deadline(network):
     server.close()
 
 
+def test_queries_whose_caller_gave_up_are_dropped_not_computed(network):
+    a, _, caller = network
+    server = Server(a, "slow", "x")
+    computed: list[float] = []
+
+    def slow(_: bytes) -> DecodeReply:
+        computed.append(time.monotonic())
+        time.sleep(0.4)
+        return DecodeReply(images=WireArray.of(np.zeros((1, 2, 2, 3), np.uint8)))
+
+    server.serve(service_key("slow", "t", "decode"), slow)
+    time.sleep(0.3)
+    z = request(np.zeros((1, 2)))
+    waiting = [call(caller, "slow", "t", "decode", z, DecodeReply, 0.3) for _ in range(5)]
+    for pending in waiting:
+        with pytest.raises(ServiceUnavailable):
+            pending.result()
+    time.sleep(0.6)  # the first query's work ends; the other four waited past their budget
+    assert len(computed) == 1 and server.expired == 4
+    assert call(caller, "slow", "t", "decode", z, DecodeReply, 2.0).result()  # serves again
+    server.close()
+
+
 def test_opening_without_a_router_gives_up_after_its_timeout():
     config = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"], open_timeout_s=0.5)
     with pytest.raises(ConnectionError, match="no zenoh router"):
