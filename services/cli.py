@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +23,17 @@ def _json_arg(text: str) -> Any:
         return json.loads(source)
     except json.JSONDecodeError as exc:
         raise ValueError(f"not valid JSON: {exc}") from None
+
+
+def _robot_id_arg(text: str) -> str:
+    from shared.bus import ROBOT_ID_PATTERN
+
+    if not re.fullmatch(ROBOT_ID_PATTERN, text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not one zenoh key chunk: 1 to 128 characters, none of / * $ ? # "
+            "and no control characters"
+        )
+    return text
 
 
 def cmd_task_info(args: argparse.Namespace) -> int:
@@ -500,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.set_defaults(handler=cmd_up)
 
     robot = sub.add_parser("robot", help="an example robot: plans over zenoh, acts in its sim")
-    robot.add_argument("--robot-id", required=True)
+    robot.add_argument("--robot-id", required=True, type=_robot_id_arg)
     robot.add_argument("--task", default="box_stacking", choices=task_names())
     robot.add_argument("--start-state", required=True, help="state JSON, inline or a file path")
     robot.add_argument("--goal-state", required=True, help="state JSON, inline or a file path")

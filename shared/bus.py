@@ -53,6 +53,10 @@ def alive_key(service: str, instance: str) -> str:
     return f"lsr/alive/{service}/{instance}"
 
 
+# A robot id is one key chunk: none of zenoh's special characters / * $ ? #, no control characters.
+ROBOT_ID_PATTERN = r"^[^/*$?#\x00-\x1f\x7f]{1,128}$"
+
+
 def robot_plan_key(robot_id: str) -> str:
     return f"lsr/robot/{robot_id}/plan"
 

@@ -6,10 +6,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from shared.bus import ROBOT_ID_PATTERN
 from shared.messages import MAX_PLANS
 from shared.tasks import task_names
-
-ROBOT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 
 
 class Strict(BaseModel):

@@ -2,6 +2,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from services.cli import main
 from shared.dataset import load_dataset
 
@@ -61,3 +63,10 @@ def test_demo_writes_a_png(tmp_path):
     out = tmp_path / "demo.png"
     assert main(["demo", "--out", str(out), "--size", "48"]) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_robot_refuses_an_id_that_is_not_one_key_chunk(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["robot", "--robot-id", "arm/7", "--start-state", "{}", "--goal-state", "{}"])
+    assert exit_info.value.code == 2
+    assert "not one zenoh key chunk" in capsys.readouterr().err
