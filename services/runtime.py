@@ -15,7 +15,7 @@ from pathlib import Path
 import zenoh
 
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
-from shared.bus import Handler, Server, close_quietly, new_instance_id, open_session, service_key
+from shared.bus import Operation, Server, close_quietly, new_instance_id, open_session, service_key
 from shared.checkpoint import weights_file
 from shared.messages import InfoReply
 from shared.settings import Settings
@@ -57,7 +57,7 @@ class ServiceContext:
 
 
 # A service's setup loads its model and returns its handlers by operation name.
-Setup = Callable[[ServiceContext], dict[str, Handler]]
+Setup = Callable[[ServiceContext], dict[str, Operation]]
 
 
 def run_service(service: str, setup: Setup, settings: Settings) -> int:

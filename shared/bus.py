@@ -19,6 +19,7 @@ import time
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 import zenoh
 from pydantic import BaseModel
@@ -322,6 +323,24 @@ def instances(
 
 Handler = Callable[[bytes], BaseModel]
 Pending = queue.Queue[tuple[float, zenoh.Query] | None]
+R = TypeVar("R")
+
+
+@dataclass(frozen=True)
+class Batched(Generic[R]):
+    """An operation that answers every query queued at once with one computation (a forward
+    pass over all their images, say): under load it costs much less per query than one by one.
+
+    `parse` turns one payload into its request, raising for bad input (that query alone gets
+    the error); `run` turns the requests of a batch into their replies, in order.
+    """
+
+    parse: Callable[[bytes], R]
+    run: Callable[[list[R]], list[BaseModel]]
+    max_batch: int = 8
+
+
+Operation = Handler | Batched  # what a service answers one of its keys with
 
 
 def budget_s(query: zenoh.Query) -> float:
@@ -352,8 +371,9 @@ class Server:
         self._queues: list[Pending] = []
         self.expired = 0  # queries dropped because their caller had stopped waiting
 
-    def serve(self, key: str, handler: Handler, per_instance: bool = True) -> None:
+    def serve(self, key: str, handler: Operation, per_instance: bool = True) -> None:
         """Answer `key` (as a complete queryable) and, for callers that pick, `key/instance`."""
+        work = handler if isinstance(handler, Batched) else Batched(handler, list, max_batch=1)
         pending: Pending = queue.Queue()
 
         def arrived(query: zenoh.Query) -> None:
@@ -363,21 +383,79 @@ class Server:
         for k in keys:
             self._queryables.append(self.session.declare_queryable(k, arrived, complete=True))
         self._queues.append(pending)
-        threading.Thread(target=self._loop, args=(pending, handler), name=key, daemon=True).start()
+        threading.Thread(target=self._loop, args=(pending, work), name=key, daemon=True).start()
 
-    def _loop(self, pending: Pending, handler: Handler) -> None:
-        while (item := pending.get()) is not None:
-            arrived, query = item
-            if time.monotonic() - arrived > budget_s(query):
-                self.expired += 1
-                if self.expired == 1 or self.expired % 100 == 0:
-                    log.warning("%s: %d queries expired in the queue", self.service, self.expired)
+    def _loop(self, pending: Pending, work: Batched) -> None:
+        while (batch := self._next_batch(pending, work.max_batch)) is not None:
+            try:
+                self._answer(batch, work)
+            except Exception:  # a reply that could not be sent must not end the worker
+                log.exception("%s could not answer a query", self.service)
+            del batch  # a query is finished when dropped: callers waiting on ALL see it at once
+
+    def _next_batch(self, pending: Pending, max_batch: int) -> list[zenoh.Query] | None:
+        """The oldest query and those queued behind it, expired ones dropped; None: stop."""
+        items = [pending.get()]
+        while items[-1] is not None and len(items) < max_batch:
+            try:
+                items.append(pending.get_nowait())
+            except queue.Empty:
+                break
+        if items[-1] is None:  # stop, once the queries before it are answered
+            items.pop()
+            if not items:
+                return None
+            pending.put(None)
+        live = []
+        for arrived, query in items:  # type: ignore[misc]
+            if time.monotonic() - arrived <= budget_s(query):
+                live.append(query)
+                continue
+            self.expired += 1
+            if self.expired == 1 or self.expired % 100 == 0:
+                log.warning("%s: %d queries expired in the queue", self.service, self.expired)
+        return live
+
+    def _answer(self, queries: list[zenoh.Query], work: Batched) -> None:
+        started = time.perf_counter()
+        accepted, requests = [], []
+        for query in queries:
+            try:
+                requests.append(work.parse(query.payload.to_bytes() if query.payload else b""))
+                accepted.append(query)
+            except Exception as exc:
+                self._reply(query, exc, started)
+        if not accepted:
+            return
+        try:
+            replies: list[BaseModel | Exception] = list(work.run(requests))
+        except Exception as exc:
+            replies = [exc] * len(accepted)
+        for query, reply in zip(accepted, replies, strict=True):
+            self._reply(query, reply, started)
+
+    def _reply(self, query: zenoh.Query, outcome: BaseModel | Exception, started: float) -> None:
+        if not isinstance(outcome, Exception):
+            try:
+                payload = pack(outcome)
+            except Exception as exc:
+                outcome = exc
             else:
-                try:
-                    answer(query, handler, self.service, self.instance)
-                except Exception:  # a reply that could not be sent must not end the worker
-                    log.exception("%s could not answer %s", self.service, query.key_expr)
-            del item, query  # a query is finished when dropped: callers waiting on ALL see it
+                took = ReplyMeta(instance=self.instance, handler_ms=_ms_since(started))
+                # congestion control: the query's
+                query.reply(
+                    query.key_expr, payload, encoding=MSGPACK, attachment=pack(took), express=True
+                )
+                return
+        query.reply_err(pack(self._error(query, outcome)), encoding=MSGPACK)
+
+    def _error(self, query: zenoh.Query, exc: Exception) -> ErrorReply:
+        if isinstance(exc, ServiceUnavailable):
+            return ErrorReply(code="unavailable", message=exc.reason, field=exc.service)
+        if isinstance(exc, (MessageError, FieldError, TaskError)):
+            return ErrorReply(code="bad_request", message=str(exc), field=_field_of(exc))
+        log.error("%s failed on %s", self.service, query.key_expr, exc_info=exc)
+        return ErrorReply(code="internal", message=f"{type(exc).__name__}: {exc}")
 
     def close(self) -> None:
         for queryable in self._queryables:
@@ -387,25 +465,8 @@ class Server:
         self.token.undeclare()
 
 
-def answer(query: zenoh.Query, handler: Handler, service: str, instance: str) -> None:
-    """Run `handler` on a query's payload and reply with its message or an ErrorReply."""
-    started = time.perf_counter()
-    payload = query.payload.to_bytes() if query.payload is not None else b""
-    try:
-        reply = pack(handler(payload))
-    except ServiceUnavailable as exc:
-        error = ErrorReply(code="unavailable", message=exc.reason, field=exc.service)
-    except (MessageError, FieldError, TaskError) as exc:
-        error = ErrorReply(code="bad_request", message=str(exc), field=_field_of(exc))
-    except Exception as exc:
-        log.exception("%s failed on %s", service, query.key_expr)
-        error = ErrorReply(code="internal", message=f"{type(exc).__name__}: {exc}")
-    else:
-        meta = ReplyMeta(instance=instance, handler_ms=(time.perf_counter() - started) * 1e3)
-        # congestion control: the query's
-        query.reply(query.key_expr, reply, encoding=MSGPACK, attachment=pack(meta), express=True)
-        return
-    query.reply_err(pack(error), encoding=MSGPACK)
+def _ms_since(started: float) -> float:
+    return (time.perf_counter() - started) * 1e3
 
 
 def _field_of(exc: Exception) -> str | None:

@@ -1,13 +1,16 @@
 """The encoder service: images -> latent means, latents -> images.
 
-Decoded roadmap nodes are cached by the callers (`shared.client.PlanningClient`), not here.
+Encoding is batched: the images of every encode query queued at once go through one forward
+pass. Decoded roadmap nodes are cached by the callers (`shared.client.PlanningClient`), not here.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from services.encoder.checkpoint import decode_latents, encode_images, load_vae
 from services.runtime import ServiceContext
-from shared.bus import Handler
+from shared.bus import Batched, Operation
 from shared.messages import (
     DecodeReply,
     DecodeRequest,
@@ -21,15 +24,19 @@ from shared.validation import check_images, check_latents, check_task
 MAX_BATCH = 256
 
 
-def setup(context: ServiceContext) -> dict[str, Handler]:
+def setup(context: ServiceContext) -> dict[str, Operation]:
     vae, _ = load_vae(context.model.directory / "vae")
     size, dim, task = context.model.image_size, context.model.latent_dim, context.model.task
 
-    def encode(payload: bytes) -> EncodeReply:
+    def parse_encode(payload: bytes) -> np.ndarray:
         request = unpack(payload, EncodeRequest)
         check_task(request.task, task)
-        images = check_images("images", request.images, size, max_rows=MAX_BATCH)
-        return EncodeReply(latents=WireArray.of(encode_images(vae, images)[0]))
+        return check_images("images", request.images, size, max_rows=MAX_BATCH)
+
+    def encode(batches: list[np.ndarray]) -> list[EncodeReply]:
+        latents = encode_images(vae, np.concatenate(batches))[0]
+        ends = np.cumsum([len(images) for images in batches])[:-1]
+        return [EncodeReply(latents=WireArray.of(z)) for z in np.split(latents, ends)]
 
     def decode(payload: bytes) -> DecodeReply:
         request = unpack(payload, DecodeRequest)
@@ -37,4 +44,4 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         latents = check_latents("latents", request.latents, dim, max_rows=MAX_BATCH)
         return DecodeReply(images=WireArray.of(decode_latents(vae, latents)))
 
-    return {"encode": encode, "decode": decode}
+    return {"encode": Batched(parse_encode, encode, max_batch=8), "decode": decode}

@@ -7,6 +7,7 @@ import pytest
 
 from services.stack import free_port
 from shared.bus import (
+    Batched,
     BusConfig,
     RemoteError,
     Replicas,
@@ -120,6 +121,39 @@ def test_queries_whose_caller_gave_up_are_dropped_not_computed(network):
     time.sleep(0.6)  # the first query's work ends; the other four waited past their budget
     assert len(computed) == 1 and server.expired == 4
     assert call(caller, "slow", "t", "decode", z, DecodeReply, 2.0).result()  # serves again
+    server.close()
+
+
+def test_queued_queries_are_answered_in_batches_each_with_its_own_reply(network):
+    a, _, caller = network
+    server = Server(a, "batcher", "x")
+    batches: list[int] = []
+
+    def parse(payload: bytes) -> np.ndarray:
+        z = unpack(payload, DecodeRequest).latents.numpy()
+        if not np.isfinite(z).all():
+            raise FieldError("latents", "contains NaN or infinity")
+        return z
+
+    def run(requests: list[np.ndarray]) -> list[DecodeReply]:
+        batches.append(len(requests))
+        time.sleep(0.2)  # the others queue up meanwhile
+        value = [np.full((1, 1, 1, 3), z[0, 0], np.uint8) for z in requests]
+        return [DecodeReply(images=WireArray.of(v)) for v in value]
+
+    server.serve(service_key("batcher", "t", "decode"), Batched(parse, run, max_batch=8))
+    time.sleep(0.3)
+    values = [np.full((1, 2), v) for v in range(6)]
+    values.insert(3, np.array([[np.nan, 0.0]]))  # one bad request among them
+    waiting = [call(caller, "batcher", "t", "decode", request(z), DecodeReply, 3.0) for z in values]
+    answers = []
+    for pending in waiting:
+        try:
+            answers.append(int(pending.result().images.numpy()[0, 0, 0, 0]))
+        except RemoteError as exc:
+            answers.append(exc.error.field)
+    assert answers == [0, 1, 2, "latents", 3, 4, 5]  # each query got its own answer
+    assert sum(batches) == 6 and len(batches) < 6  # computed together, the bad one not at all
     server.close()
 
 
