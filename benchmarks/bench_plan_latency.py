@@ -24,6 +24,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from services.encoder.checkpoint import encode_images, load_vae  # noqa: E402
 from services.gateway.planning import decode_b64_image  # noqa: E402
 from services.planner.action_plans import ActionPlanner  # noqa: E402
 from services.sim.worlds import make_world  # noqa: E402
@@ -96,6 +97,25 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
     }
 
 
+def idle_penalty(model: Path, bodies: list[dict], idle_s: float = 0.012) -> dict[str, dict]:
+    """The encoder's forward pass back to back, and after idling as each service does at
+    concurrency 1 (it waits ~12 ms for the other stages): on a shared VM, idling costs speed."""
+    torch.set_num_threads(1)
+    vae, _ = load_vae(model / "vae")
+    body = bodies[0]
+    images = np.stack([decode_b64_image(k, body[k]["image"], 64) for k in ("start", "goal")])
+    timings: dict[str, dict] = {}
+    for name, pause in (("back_to_back", 0.0), (f"after_{idle_s * 1e3:.0f}_ms_idle", idle_s)):
+        seconds = []
+        for _ in range(150):
+            time.sleep(pause)
+            t0 = time.perf_counter()
+            encode_images(vae, images)
+            seconds.append(time.perf_counter() - t0)
+        timings[name] = percentiles(seconds[20:])
+    return timings
+
+
 def server_timing(header: str) -> dict[str, float]:
     return {name: float(ms) for name, ms in (m.split(";dur=") for m in header.split(", "))}
 
@@ -160,6 +180,8 @@ def main() -> None:
     # after the stack's, and report the ratio against both.
     before = in_process(args.model, bodies, repeats=200)
     print("in process (before):", json.dumps(before), flush=True)
+    idle = idle_penalty(args.model, bodies)
+    print("encoder forward, 2 images:", json.dumps(idle), flush=True)
 
     with tempfile.TemporaryDirectory() as logs:
         config = StackConfig(
@@ -179,7 +201,12 @@ def main() -> None:
         "p50 through the stack / in process (same work incl. image codecs): "
         + " and ".join(f"{r:.2f}x" for r in ratios)
     )
-    summary = {"in_process": [before, after], "stack_c1": one, "stack_c8": eight}
+    summary = {
+        "in_process": [before, after],
+        "encoder_idle_penalty": idle,
+        "stack_c1": one,
+        "stack_c8": eight,
+    }
     print(json.dumps({**summary, "p50_ratios": [round(r, 2) for r in ratios]}))
 
 
