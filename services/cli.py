@@ -30,8 +30,8 @@ def _robot_id_arg(text: str) -> str:
 
     if not re.fullmatch(ROBOT_ID_PATTERN, text):
         raise argparse.ArgumentTypeError(
-            f"{text!r} is not one zenoh key chunk: 1 to 128 characters, none of / * $ ? # "
-            "and no control characters"
+            f"{text!r} is not one zenoh key chunk: 1 to 128 characters, none of / * $ ? #, "
+            "no control characters, not starting with @"
         )
     return text
 

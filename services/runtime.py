@@ -8,7 +8,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,7 +57,7 @@ class ServiceContext:
 
 
 # A service's setup loads its model and returns its handlers by operation name.
-Setup = Callable[[ServiceContext], dict[str, Operation]]
+Setup = Callable[[ServiceContext], Mapping[str, Operation]]
 
 
 def run_service(service: str, setup: Setup, settings: Settings) -> int:

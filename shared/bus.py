@@ -16,6 +16,7 @@ import queue
 import socket
 import threading
 import time
+import traceback
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -54,8 +55,9 @@ def alive_key(service: str, instance: str) -> str:
     return f"lsr/alive/{service}/{instance}"
 
 
-# A robot id is one key chunk: none of zenoh's special characters / * $ ? #, no control characters.
-ROBOT_ID_PATTERN = r"^[^/*$?#\x00-\x1f\x7f]{1,128}$"
+# A robot id is one key chunk: none of zenoh's special characters / * $ ? #, no control characters,
+# and no leading @ (zenoh's verbatim chunks, which wildcards do not match).
+ROBOT_ID_PATTERN = r"^[^@/*$?#\x00-\x1f\x7f][^/*$?#\x00-\x1f\x7f]{0,127}$"
 
 
 def robot_plan_key(robot_id: str) -> str:
@@ -356,7 +358,8 @@ def budget_s(query: zenoh.Query) -> float:
 class Server:
     """Declares queryables for one service instance, each served by its own worker thread.
 
-    Handlers raise MessageError or ValueError for a bad request; anything else is internal.
+    Handlers raise MessageError, FieldError or TaskError for a bad request; anything else is
+    internal. A plain handler is a batch of one whose `parse` does all the work.
     Work happens off zenoh's callback threads, so a slow handler never stalls the network. A query
     still queued when its caller's budget (`CallBudget`) has run out is dropped unanswered: under
     overload the queue drains instead of computing replies nobody waits for.
@@ -370,6 +373,7 @@ class Server:
         self._queryables: list[zenoh.Queryable] = []
         self._queues: list[Pending] = []
         self.expired = 0  # queries dropped because their caller had stopped waiting
+        self._expired_lock = threading.Lock()
 
     def serve(self, key: str, handler: Operation, per_instance: bool = True) -> None:
         """Answer `key` (as a complete queryable) and, for callers that pick, `key/instance`."""
@@ -411,12 +415,16 @@ class Server:
             if time.monotonic() - arrived <= budget_s(query):
                 live.append(query)
                 continue
-            self.expired += 1
-            if self.expired == 1 or self.expired % 100 == 0:
-                log.warning("%s: %d queries expired in the queue", self.service, self.expired)
+            with self._expired_lock:
+                self.expired += 1
+                expired = self.expired
+            if expired == 1 or expired % 100 == 0:
+                log.warning("%s: %d queries expired in the queue", self.service, expired)
         return live
 
     def _answer(self, queries: list[zenoh.Query], work: Batched) -> None:
+        # Errors become ErrorReply at once: a kept exception's traceback would hold the queries
+        # (and so their callers) until the garbage collector ran.
         started = time.perf_counter()
         accepted, requests = [], []
         for query in queries:
@@ -424,22 +432,27 @@ class Server:
                 requests.append(work.parse(query.payload.to_bytes() if query.payload else b""))
                 accepted.append(query)
             except Exception as exc:
-                self._reply(query, exc, started)
+                self._send(query, self._error(query, exc), started)
         if not accepted:
             return
         try:
-            replies: list[BaseModel | Exception] = list(work.run(requests))
+            replies = list(work.run(requests))
+            if len(replies) != len(accepted):
+                raise RuntimeError(f"{len(replies)} replies for {len(accepted)} queries")
         except Exception as exc:
-            replies = [exc] * len(accepted)
+            replies = [self._error(accepted[0], exc)] * len(accepted)
         for query, reply in zip(accepted, replies, strict=True):
-            self._reply(query, reply, started)
-
-    def _reply(self, query: zenoh.Query, outcome: BaseModel | Exception, started: float) -> None:
-        if not isinstance(outcome, Exception):
             try:
-                payload = pack(outcome)
+                self._send(query, reply, started)
+            except Exception:  # the others of the batch are still answered
+                log.exception("%s could not answer %s", self.service, query.key_expr)
+
+    def _send(self, query: zenoh.Query, reply: BaseModel, started: float) -> None:
+        if not isinstance(reply, ErrorReply):
+            try:
+                payload = pack(reply)
             except Exception as exc:
-                outcome = exc
+                reply = self._error(query, exc)
             else:
                 took = ReplyMeta(instance=self.instance, handler_ms=_ms_since(started))
                 # congestion control: the query's
@@ -447,14 +460,15 @@ class Server:
                     query.key_expr, payload, encoding=MSGPACK, attachment=pack(took), express=True
                 )
                 return
-        query.reply_err(pack(self._error(query, outcome)), encoding=MSGPACK)
+        query.reply_err(pack(reply), encoding=MSGPACK)
 
     def _error(self, query: zenoh.Query, exc: Exception) -> ErrorReply:
         if isinstance(exc, ServiceUnavailable):
             return ErrorReply(code="unavailable", message=exc.reason, field=exc.service)
         if isinstance(exc, (MessageError, FieldError, TaskError)):
             return ErrorReply(code="bad_request", message=str(exc), field=_field_of(exc))
-        log.error("%s failed on %s", self.service, query.key_expr, exc_info=exc)
+        trace = "".join(traceback.format_exception(exc))  # text: a record keeps no frames alive
+        log.error("%s failed on %s\n%s", self.service, query.key_expr, trace)
         return ErrorReply(code="internal", message=f"{type(exc).__name__}: {exc}")
 
     def close(self) -> None:

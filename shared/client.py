@@ -133,7 +133,10 @@ class PlanningClient:
         if decoding is not None:
             decoded: DecodeReply = decoding.result()
             for (node, key), image in zip(missing, decoded.images.numpy(), strict=True):
-                self.node_images.put(key, image)
+                image = image.copy()  # a row of the reply would keep the whole reply alive
+                image.setflags(write=False)
+                if decoded.model_id == found.model_id:  # not while models are being rolled out
+                    self.node_images.put(key, image)
                 images[node] = image
         plans = []
         for path in found.paths:
@@ -163,4 +166,4 @@ class PlanningClient:
 
 
 def timings(calls: list[PendingCall]) -> list[CallTiming]:
-    return [call.timing for call in calls if call.timing is not None]
+    return [pending.timing for pending in calls if pending.timing is not None]

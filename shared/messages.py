@@ -77,6 +77,7 @@ class DecodeRequest(TaskMessage):
 
 class DecodeReply(Message):
     images: WireArray  # uint8 (N, H, W, 3)
+    model_id: str | None = None  # the decoder's model: callers keep images only of their own
 
 
 # planner ------------------------------------------------------------------------------------

@@ -42,6 +42,7 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
         request = unpack(payload, DecodeRequest)
         check_task(request.task, task)
         latents = check_latents("latents", request.latents, dim, max_rows=MAX_BATCH)
-        return DecodeReply(images=WireArray.of(decode_latents(vae, latents)))
+        images = WireArray.of(decode_latents(vae, latents))
+        return DecodeReply(images=images, model_id=context.model.model_id)
 
     return {"encode": Batched(parse_encode, encode, max_batch=8), "decode": decode}

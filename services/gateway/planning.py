@@ -194,7 +194,10 @@ class Gateway:
 
 def server_timing(calls: list[CallTiming], total_ms: float) -> str:
     """`encode;dur=8.1, encode-handler;dur=6.9, ..., gateway;dur=17.2`: round trips of the
-    service calls, their handlers' own time, and the gateway's whole time (browsers show it)."""
+    service calls, their handlers' own time, and the gateway's whole time (browsers show it).
+
+    Propose and decode run at once and are read in that order: decode's round trip, when there
+    is one, includes any wait for propose."""
     metrics = []
     for call in calls:
         metrics.append(f"{call.operation};dur={call.round_trip_ms:.2f}")

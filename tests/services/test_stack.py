@@ -199,6 +199,7 @@ BAD_INPUTS = [
     ("max_plans out of range", {**GOOD, "max_plans": 0}, 422, "max_plans"),
     ("max_plans not a number", {**GOOD, "max_plans": "many"}, 422, "max_plans"),
     ("robot_id not a key", {**GOOD, "robot_id": "a/b*"}, 422, "robot_id"),
+    ("robot_id a verbatim chunk", {**GOOD, "robot_id": "@arm"}, 422, "robot_id"),
     ("unknown field", {**GOOD, "max_plan": 3}, 422, "max_plan"),
     ("body over the limit", {**GOOD, "start": {"image": "A" * (5 * 1024 * 1024)}}, 413, None),
 ]

@@ -157,6 +157,29 @@ def test_queued_queries_are_answered_in_batches_each_with_its_own_reply(network)
     server.close()
 
 
+@pytest.mark.parametrize(
+    "run",
+    [lambda requests: 1 / 0, lambda requests: []],
+    ids=["run raises", "run returns too few replies"],
+)
+def test_a_failing_batch_answers_each_query_with_an_internal_error(network, run):
+    a, _, caller = network
+    server = Server(a, "broken", "x")
+    server.serve(service_key("broken", "t", "decode"), Batched(lambda payload: payload, run))
+    time.sleep(0.3)
+    started = time.monotonic()
+    waiting = [
+        call(caller, "broken", "t", "decode", request(np.zeros((1, 2))), DecodeReply, 2.0)
+        for _ in range(3)
+    ]
+    for pending in waiting:
+        with pytest.raises(RemoteError) as info:
+            pending.result()
+        assert info.value.error.code == "internal"
+    assert time.monotonic() - started < 1.0  # answered, not left to time out
+    server.close()
+
+
 def test_opening_without_a_router_gives_up_after_its_timeout():
     config = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"], open_timeout_s=0.5)
     with pytest.raises(ConnectionError, match="no zenoh router"):

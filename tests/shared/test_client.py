@@ -24,6 +24,7 @@ def services():
     session = open_session(BusConfig(connect=[endpoint], open_timeout_s=5))
     model = ModelInfo.read(SHIPPED_MODEL)
     decoded: list[int] = []  # rows each decode query asked for
+    decoder_model = {"id": model.model_id}  # a test may pretend a decoder of another model
     servers = []
     for name, module in (
         ("encoder", encoder_service),
@@ -38,7 +39,7 @@ def services():
             def counted(payload: bytes, decode=decode):
                 reply = decode(payload)
                 decoded.append(len(reply.images.numpy()))
-                return reply
+                return reply.model_copy(update={"model_id": decoder_model["id"]})
 
             handlers["decode"] = counted
         server = Server(session, name, "x")
@@ -47,15 +48,14 @@ def services():
         servers.append(server)
     caller = open_session(BusConfig(connect=[endpoint], open_timeout_s=5))
     time.sleep(0.3)
-    yield PlanningClient(caller, model.task), decoded
+    yield caller, model.task, decoded, decoder_model
     for server in servers:
         server.close()
     for s in (caller, session, router):
         close_quietly(s)
 
 
-def test_plans_check_out_and_each_node_is_decoded_once(services):
-    client, decoded = services
+def start_and_goal() -> list[np.ndarray]:
     task = get_task("box_stacking")
     rng = np.random.default_rng(3)
     states = [task.sample_state(rng) for _ in range(2)]
@@ -64,19 +64,42 @@ def test_plans_check_out_and_each_node_is_decoded_once(services):
         for state in states:
             world.reset(state, rng)
             images.append(world.render())
+    return images
 
-    plans, reason, timings = client.plan_with_reason(images[0], images[1])
+
+def test_plans_check_out_and_each_node_is_decoded_once(services):
+    session, task, decoded, _ = services
+    client = PlanningClient(session, task)
+    start, goal = start_and_goal()
+    before = sum(decoded)
+
+    plans, reason, timings = client.plan_with_reason(start, goal)
     assert plans, reason
     assert [t.operation for t in timings] == ["encode", "paths", "propose", "decode"]
     assert all(0 < t.handler_ms < t.round_trip_ms for t in timings)
     for plan in plans:
         assert len(plan.images) == len(plan.nodes) == len(plan.actions) + 1
-    nodes = {n for plan in plans for n in plan.nodes}
-    assert sum(decoded) == len(nodes)  # one decode query, every node on some plan once
+    first = sum(decoded) - before
+    assert first >= len({n for plan in plans for n in plan.nodes})  # one query, each node once
 
-    again, _, timings = client.plan_with_reason(images[0], images[1])
+    again, _, timings = client.plan_with_reason(start, goal)
     assert [t.operation for t in timings] == ["encode", "paths", "propose"]
-    assert sum(decoded) == len(nodes)  # nothing decoded the second time
-    for first, second in zip(plans, again, strict=True):
-        assert first.nodes == second.nodes and first.actions == second.actions
-        assert all(np.array_equal(a, b) for a, b in zip(first.images, second.images, strict=True))
+    assert sum(decoded) - before == first  # nothing decoded the second time
+    for one, other in zip(plans, again, strict=True):
+        assert one.nodes == other.nodes and one.actions == other.actions
+        assert all(np.array_equal(a, b) for a, b in zip(one.images, other.images, strict=True))
+
+
+def test_images_of_another_decoder_model_are_not_kept(services):
+    session, task, decoded, decoder_model = services
+    client = PlanningClient(session, task)
+    start, goal = start_and_goal()
+    decoder_model["id"] = "another-model"
+    before = sum(decoded)
+    try:
+        client.plan_with_reason(start, goal)
+        once = sum(decoded) - before
+        client.plan_with_reason(start, goal)
+        assert once > 0 and sum(decoded) - before == 2 * once  # decoded again: nothing kept
+    finally:
+        decoder_model["id"] = ModelInfo.read(SHIPPED_MODEL).model_id
