@@ -17,7 +17,7 @@ import zenoh
 
 from services.sim.closed_loop import Episode, run_episode
 from services.sim.worlds import make_world
-from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, instances, robot_plan_key
+from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, encoder_image_size, robot_plan_key
 from shared.images import png_b64
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
@@ -98,13 +98,6 @@ class RobotPlanner:
         self.subscriber.undeclare()
 
 
-def image_size(session: zenoh.Session, task: str, timeout_s: float = 5.0) -> int:
-    found = instances(session, "encoder", task, timeout_s=timeout_s)()
-    if not found:
-        raise ServiceUnavailable("encoder", "no instance answered; is the stack up?")
-    return found[0].image_size
-
-
 def run_robot(
     session: zenoh.Session,
     robot_id: str,
@@ -125,7 +118,7 @@ def run_robot(
         )
 
     try:
-        with make_world(task_name, image_size(session, task_name)) as world:
+        with make_world(task_name, encoder_image_size(session, task_name, timeout_s=5.0)) as world:
             return run_episode(
                 planner,
                 world,

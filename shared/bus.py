@@ -323,6 +323,14 @@ def instances(
     return collect
 
 
+def encoder_image_size(session: zenoh.Session, task: str, timeout_s: float = 1.5) -> int:
+    """The image size of the model the encoders of `task` serve, asked of them."""
+    found = instances(session, "encoder", task, timeout_s=timeout_s)()
+    if not found:
+        raise ServiceUnavailable("encoder", f"no instance serves task {task!r}")
+    return found[0].image_size
+
+
 Handler = Callable[[bytes], BaseModel]
 Pending = queue.Queue[tuple[float, zenoh.Query] | None]
 R = TypeVar("R")

@@ -94,7 +94,8 @@ class PlanningClient:
         calls = [encoding, searching]
         if not found.paths:
             return PlanOutcome([], found.reason, timings(calls))
-        latents = dict(zip(found.node_ids, found.node_latents.numpy(), strict=True))
+        node_latents = found.node_latents.numpy()
+        latents = dict(zip(found.node_ids, node_latents, strict=True))
         steps = list(dict.fromkeys((a, b) for p in found.paths for a, b in itertools.pairwise(p)))
         proposing = decoding = None
         if steps:
@@ -108,7 +109,7 @@ class PlanningClient:
         images: dict[int, np.ndarray] = {}
         missing: list[tuple[int, tuple[str, bytes]]] = []
         if include_images:
-            for node, latent in zip(found.node_ids, found.node_latents.numpy(), strict=True):
+            for node, latent in zip(found.node_ids, node_latents, strict=True):
                 key = (found.model_id, latent.tobytes())
                 image = self.node_images.get(key)
                 if image is None:

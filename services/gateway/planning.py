@@ -30,13 +30,13 @@ from shared.bus import (
     JSON,
     SERVICES,
     CallTiming,
-    ServiceUnavailable,
+    encoder_image_size,
     instances,
     robot_plan_key,
 )
 from shared.client import PlanningClient
 from shared.images import ImageError, PngCache, decode_image, png_b64
-from shared.messages import InfoReply, RunRequest, WireArray
+from shared.messages import RunRequest, WireArray
 from shared.settings import Settings
 from shared.tasks import get_task
 from shared.validation import FieldError, parse_state
@@ -62,7 +62,7 @@ class Gateway:
         self.session = session
         self.settings = settings
         self._clients: dict[str, PlanningClient] = {}
-        self._info: dict[str, tuple[float, InfoReply]] = {}
+        self._sizes: dict[str, tuple[float, int]] = {}  # task -> (when asked, image size)
         self.pngs = PngCache()
 
     def client(self, task: str) -> PlanningClient:
@@ -72,14 +72,11 @@ class Gateway:
 
     def image_size(self, task: str) -> int:
         """The model's image size, asked of the encoder and remembered for a few seconds."""
-        cached = self._info.get(task)
+        cached = self._sizes.get(task)
         if cached is None or time.monotonic() - cached[0] > INFO_TTL_S:
-            found = instances(self.session, "encoder", task)()
-            if not found:
-                raise ServiceUnavailable("encoder", f"no instance serves task {task!r}")
-            cached = (time.monotonic(), found[0])
-            self._info[task] = cached
-        return cached[1].image_size
+            cached = (time.monotonic(), encoder_image_size(self.session, task))
+            self._sizes[task] = cached
+        return cached[1]
 
     def health(self) -> Health:
         asked = {

@@ -103,10 +103,7 @@ def test_ping_is_a_health_check_for_the_instances_of_this_host(stack):
 
 
 def test_plan_from_states(http):
-    reply = http.post(
-        "/plan",
-        json={**GOOD, "max_plans": 3},
-    )
+    reply = http.post("/plan", json={**GOOD, "max_plans": 3})
     assert reply.status_code == 200, reply.text
     body = reply.json()
     assert len(body["plans"]) <= 3 and body["reason"] is None
@@ -239,10 +236,7 @@ def test_bad_input_on_the_other_routes(http):
 
 
 def test_execute_reaches_the_goal(http):
-    reply = http.post(
-        "/execute",
-        json={**GOOD, "seed": 3},
-    )
+    reply = http.post("/execute", json={**GOOD, "seed": 3})
     assert reply.status_code == 200, reply.text
     body = reply.json()
     assert body["success"] and body["reason"] == "goal"
