@@ -51,6 +51,7 @@ def cmd_data_generate(args: argparse.Namespace) -> int:
         image_size=args.size,
         action_fraction=args.action_fraction,
         workers=args.workers,
+        episode_length=args.episode_length,
     )
     result = generate(cfg, args.out, overwrite=args.overwrite)
     counts = result["counts"]
@@ -366,6 +367,12 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--size", type=int, default=64, help="image size in pixels (square)")
     gen.add_argument("--action-fraction", type=float, default=0.65)
     gen.add_argument("--workers", type=int, default=2, help="rendering processes")
+    gen.add_argument(
+        "--episode-length",
+        type=int,
+        default=None,
+        help="tuples walked from one reset (default: the world's, 1 box stacking, 10 cloth)",
+    )
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     gen.set_defaults(handler=cmd_data_generate)

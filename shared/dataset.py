@@ -1,12 +1,14 @@
 """On-disk dataset of (image 1, image 2, a, u, state 1, state 2) tuples, without pickle.
 
 Layout of a dataset folder:
-  manifest.json        format, version, task, image size, seed, counts, shards with sha256
+  manifest.json        format, version, task, spec, image size, seed, counts, shards with sha256
   shard-00000.npz ...  uncompressed-header zip of .npy arrays, one entry per field:
     image1, image2  uint8  (n, H, W, 3)
     a               uint8  (n,)     1 = action pair, 0 = no-action pair
-    u               int8   (n, *task.action_array_shape)  -1 everywhere when a = 0
-    state1, state2  int8   (n, *task.state_array_shape)
+    u               spec.action.dtype  (n, *spec.action.shape)  -1 everywhere when a = 0
+    state1, state2  spec.state.dtype   (n, *spec.state.shape)
+The manifest's `spec` (a `TaskSpec`) declares the arrays, so readers never look shapes up in
+the task registry; manifests written before it existed get the registered task's spec.
 Zip entries carry a fixed timestamp, so the same seed gives the same bytes.
 """
 
@@ -24,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from shared.checkpoint import read_versioned_json
+from shared.tasks.spec import SpecError, TaskSpec
 
 FORMAT = "lsr-dataset"
 VERSION = 1
@@ -56,9 +59,41 @@ class Dataset:
     def image_size(self) -> int:
         return self.manifest["image_size"]
 
+    @property
+    def spec(self) -> TaskSpec:
+        return manifest_spec(self.manifest)
 
-def write_shard(path: Path, arrays: dict[str, np.ndarray]) -> str:
-    """Write arrays as a deterministic .npz; returns its sha256."""
+
+def manifest_spec(manifest: dict[str, Any]) -> TaskSpec:
+    """The dataset's declared arrays; the registered task's for manifests that predate specs."""
+    if "spec" not in manifest:
+        from shared.tasks import get_task
+
+        return get_task(manifest["task"]).spec
+    try:
+        return TaskSpec.from_json(manifest["spec"])
+    except SpecError as exc:
+        raise DatasetError(f"manifest.json: {exc}") from None
+
+
+def validate_arrays(spec: TaskSpec, arrays: dict[str, np.ndarray]) -> None:
+    """Raise DatasetError naming the field unless the arrays are what `spec` declares."""
+    n = len(arrays["a"])
+    try:
+        for name in FIELDS:
+            if len(arrays[name]) != n:
+                raise SpecError(f"{name}: {len(arrays[name])} rows, 'a' has {n}")
+        spec.action.validate(arrays["u"], "u")
+        if spec.state is not None:
+            spec.state.validate(arrays["state1"], "state1")
+            spec.state.validate(arrays["state2"], "state2")
+    except SpecError as exc:
+        raise DatasetError(str(exc)) from None
+
+
+def write_shard(path: Path, arrays: dict[str, np.ndarray], spec: TaskSpec) -> str:
+    """Write arrays as a deterministic .npz after checking them against `spec`; its sha256."""
+    validate_arrays(spec, arrays)
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as zf:
         for name in FIELDS:

@@ -17,7 +17,6 @@ from services.apn.model import APN, APNConfig, Head
 from services.encoder.checkpoint import encode_images, load_vae
 from shared.checkpoint import read_config, weights_file
 from shared.dataset import load_dataset
-from shared.tasks import get_task
 
 FORMAT = "lsr-apn"
 VERSION = 1
@@ -42,13 +41,14 @@ class APNTrainConfig:
 
 
 def action_pair_latents(vae_dir: Path | str, data_dir: Path | str):
-    """Encoder means and log-variances of the action pairs, with their action arrays."""
+    """Encoder means and log-variances of the action pairs, their action arrays and the
+    dataset's spec (which declares the action's fields and ranges)."""
     model, _ = load_vae(vae_dir)
     data = load_dataset(data_dir)
     act = data.a == 1
     mu1, lv1 = encode_images(model, data.image1[act])
     mu2, lv2 = encode_images(model, data.image2[act])
-    return data.task, mu1, lv1, mu2, lv2, data.u[act].astype(np.int64)
+    return data.spec, mu1, lv1, mu2, lv2, data.u[act].astype(np.int64)
 
 
 def _enlarge(mu1, lv1, mu2, lv2, u, samples: int, rng: np.random.Generator):
@@ -74,17 +74,14 @@ def train_apn(
 ) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    task_name, mu1, lv1, mu2, lv2, u = action_pair_latents(vae_dir, data_dir)
-    task = get_task(task_name)
+    spec, mu1, lv1, mu2, lv2, u = action_pair_latents(vae_dir, data_dir)
     order = rng.permutation(len(u))
     n_val = max(1, round(cfg.val_fraction * len(u)))
     val, train = order[:n_val], order[n_val:]  # split pairs first: no pair on both sides
     tr = _enlarge(mu1[train], lv1[train], mu2[train], lv2[train], u[train], cfg.samples, rng)
     va = _enlarge(mu1[val], lv1[val], mu2[val], lv2[val], u[val], cfg.samples, rng)
 
-    model = APN(
-        APNConfig(latent_dim=mu1.shape[1], action_sizes=task.action_array_sizes, head=cfg.head)
-    )
+    model = APN(APNConfig(latent_dim=mu1.shape[1], action_sizes=spec.action.counts, head=cfg.head))
     optimiser = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     generator = torch.Generator().manual_seed(cfg.seed)
     out_dir = Path(out_dir)
@@ -122,7 +119,7 @@ def train_apn(
         "train": asdict(cfg),
         "vae": str(vae_dir),
         "dataset": str(data_dir),
-        "task": task_name,
+        "task": spec.task,
         "pairs": {"train": len(train), "val": len(val), "train_samples": len(tr[2])},
         "best": best,
         "seconds": time.perf_counter() - started,

@@ -49,17 +49,21 @@ def build_from_dataset(
     roadmap = build_roadmap(mu1, mu2, data.a, config)
     built = time.perf_counter()
     roadmap.save(out_dir)
-    labels = label_nodes(
-        roadmap.point_node, interleave(data.state1, data.state2), len(roadmap.nodes)
-    )
-    task = get_task(data.task)
-    (Path(out_dir) / LABELS).write_text(json.dumps(labels.to_json(task)) + "\n")
+    purity: dict[str, Any] = {}
+    if data.spec.state is not None:  # node labels need the states the data declares
+        labels = label_nodes(
+            roadmap.point_node, interleave(data.state1, data.state2), len(roadmap.nodes)
+        )
+        (Path(out_dir) / LABELS).write_text(json.dumps(labels.to_json(get_task(data.task))) + "\n")
+        purity = {
+            "mean_purity": float(labels.purity.mean()) if len(labels.purity) else 0.0,
+            "pure_nodes": int((labels.purity == 1).sum()),
+        }
     return {
         "nodes": len(roadmap.nodes),
         "edges": len(roadmap.edges),
         "epsilon": roadmap.epsilon,
-        "mean_purity": float(labels.purity.mean()) if len(labels.purity) else 0.0,
-        "pure_nodes": int((labels.purity == 1).sum()),
+        **purity,
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,
         **{k: v for k, v in roadmap.stats.items() if not isinstance(v, dict)},

@@ -23,7 +23,7 @@ from shared.tasks.base import Task
 class NodeLabels:
     """Majority state array of each node's members, and the share that agrees with it."""
 
-    states: np.ndarray  # (K, *state_shape) int8
+    states: np.ndarray  # (K, *spec.state.shape) of spec.state.dtype
     purity: np.ndarray  # (K,) float
     members: np.ndarray  # (K,) int
 
@@ -40,9 +40,11 @@ class NodeLabels:
 
     @classmethod
     def from_json(cls, task: Task, rows: list[dict[str, Any]]) -> NodeLabels:
+        spec = task.spec.state
+        assert spec is not None, "node labels need a task with states"
         states = [task.state_to_array(task.parse_state(r["state"])) for r in rows]
         return cls(
-            states=np.array(states, np.int8).reshape(len(rows), *task.state_array_shape),
+            states=np.array(states, spec.dtype).reshape(len(rows), *spec.shape),
             purity=np.array([r["purity"] for r in rows]),
             members=np.array([r["members"] for r in rows]),
         )
@@ -52,7 +54,7 @@ def label_nodes(point_node: np.ndarray, point_states: np.ndarray, num_nodes: int
     """point_states: (2N, *state_shape) for the points numbered z1[0], z2[0], z1[1], ..."""
     shape = point_states.shape[1:]
     keys = [s.tobytes() for s in point_states]
-    states = np.zeros((num_nodes, *shape), np.int8)
+    states = np.zeros((num_nodes, *shape), point_states.dtype)
     purity = np.zeros(num_nodes)
     members = np.zeros(num_nodes, np.int64)
     groups: dict[int, Counter] = {}
@@ -61,7 +63,7 @@ def label_nodes(point_node: np.ndarray, point_states: np.ndarray, num_nodes: int
             groups.setdefault(node, Counter())[key] += 1
     for node, counter in groups.items():
         key, count = counter.most_common(1)[0]
-        states[node] = np.frombuffer(key, np.int8).reshape(shape)
+        states[node] = np.frombuffer(key, point_states.dtype).reshape(shape)
         members[node] = sum(counter.values())
         purity[node] = count / members[node]
     return NodeLabels(states, purity, members)

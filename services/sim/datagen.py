@@ -10,7 +10,7 @@ import multiprocessing as mp
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,8 @@ class GenerateConfig:
     action_fraction: float = 0.65
     shard_size: int = 1000
     workers: int = min(2, os.cpu_count() or 1)
+    episode_length: int | None = None  # tuples walked from one reset; None: the world's default
+    world_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"lattice": 5}
 
     def __post_init__(self) -> None:
         if self.pairs < 1:
@@ -41,6 +43,8 @@ class GenerateConfig:
             raise ValueError(f"action_fraction must be in [0, 1], got {self.action_fraction}")
         if self.shard_size < 1 or self.workers < 1:
             raise ValueError("shard_size and workers must be at least 1")
+        if self.episode_length is not None and self.episode_length < 1:
+            raise ValueError(f"episode_length must be at least 1, got {self.episode_length}")
         if self.image_size not in range(16, 1025):
             raise ValueError(f"image_size {self.image_size} is out of range 16..1024")
 
@@ -53,53 +57,64 @@ def action_flags(cfg: GenerateConfig) -> np.ndarray:
     return flags
 
 
-def make_tuple(task: Task, world: World, seed: int, index: int, is_action: bool) -> dict:
+def make_episode(task: Task, world: World, seed: int, start: int, flags: list[int]) -> list[dict]:
+    """Tuples start .. start + len(flags) - 1: one walk from a random state, each tuple's second
+    state the next one's first. Seeded by (seed, start, attempt) alone, so the bytes do not
+    depend on how episodes are spread over workers; a walk whose physics fails starts again."""
     for attempt in range(MAX_ATTEMPTS):
-        rng = np.random.default_rng([seed, index, attempt])
+        rng = np.random.default_rng([seed, start, attempt])
         try:
             state1 = task.sample_state(rng)
             if world.reset(state1, rng) != state1:
                 raise WorldError("settled state differs from the placed one")
-            image1 = world.render()
-            action = None
-            if is_action:
-                legal = task.legal_actions(state1)
-                action = legal[int(rng.integers(len(legal)))]
-                state2 = world.execute(action, rng)
-                if state2 != task.apply(state1, action):
-                    raise WorldError(f"executing {action} gave an unexpected state {state2}")
-            else:
-                state2 = world.reset(state1, rng)
-                if state2 != state1:
-                    raise WorldError("re-rendered state differs from the placed one")
-            return {
-                "image1": image1,
-                "image2": world.render(),
-                "a": np.uint8(is_action),
-                "u": task.action_to_array(action),
-                "state1": task.state_to_array(state1),
-                "state2": task.state_to_array(state2),
-            }
+            rows = []
+            for is_action in flags:
+                image1 = world.render()
+                action = None
+                if is_action:
+                    legal = task.legal_actions(state1)
+                    action = world.demonstrated(legal[int(rng.integers(len(legal)))], rng)
+                    state2 = world.execute(action, rng)
+                    if state2 != task.apply(state1, action):
+                        raise WorldError(f"executing {action} gave an unexpected state {state2}")
+                else:
+                    state2 = world.perturb(rng)
+                    if state2 != state1:
+                        raise WorldError("the perturbed state differs from the placed one")
+                rows.append(
+                    {
+                        "image1": image1,
+                        "image2": world.render(),
+                        "a": np.uint8(is_action),
+                        "u": task.action_to_array(action),
+                        "state1": task.state_to_array(state1),
+                        "state2": task.state_to_array(state2),
+                    }
+                )
+                state1 = state2
+            return rows
         except WorldError as exc:
             last = exc
-    raise WorldError(f"tuple {index}: physics failed {MAX_ATTEMPTS} times, last: {last}")
+    raise WorldError(f"episode at tuple {start}: physics failed {MAX_ATTEMPTS} times, last: {last}")
 
 
 _worker: tuple[Task, World] | None = None
 
 
-def _init_worker(task_name: str, image_size: int) -> None:
+def _init_worker(task_name: str, image_size: int, options: dict[str, Any]) -> None:
     global _worker
     from services.sim.worlds import make_world
 
-    _worker = (get_task(task_name), make_world(task_name, image_size))
+    _worker = (get_task(task_name), make_world(task_name, image_size, **options))
 
 
-def _make_chunk(job: tuple[int, int, list[int]]) -> list[dict]:
+def _make_chunk(job: tuple[int, list[tuple[int, list[int]]]]) -> list[dict]:
     assert _worker is not None
-    seed, start, flags = job
+    seed, episodes = job
     task, world = _worker
-    return [make_tuple(task, world, seed, start + i, bool(f)) for i, f in enumerate(flags)]
+    return [
+        row for start, flags in episodes for row in make_episode(task, world, seed, start, flags)
+    ]
 
 
 def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
@@ -113,32 +128,35 @@ def generate(
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass overwrite to replace it")
-    get_task(cfg.task)  # fail fast on an unknown task
+    spec = get_task(cfg.task).spec  # fails fast on an unknown task
+    from services.sim.worlds import world_class
+
     partial = out.with_name(f".{out.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
 
     flags = action_flags(cfg)
-    chunk = 25
-    jobs = [(cfg.seed, s, flags[s : s + chunk].tolist()) for s in range(0, cfg.pairs, chunk)]
+    length = cfg.episode_length or world_class(cfg.task).episode_length
+    episodes = [(s, flags[s : s + length].tolist()) for s in range(0, cfg.pairs, length)]
+    per_job = max(1, 25 // length)  # about 25 tuples a job
+    jobs = [(cfg.seed, episodes[i : i + per_job]) for i in range(0, len(episodes), per_job)]
     started = time.perf_counter()
     shards: list[dict[str, Any]] = []
     pending: list[dict] = []
 
     def flush(rows: list[dict]) -> None:
         name = ds.shard_name(len(shards))
-        sha = ds.write_shard(partial / name, _stack(rows))
+        sha = ds.write_shard(partial / name, _stack(rows), spec)
         shards.append({"file": name, "count": len(rows), "sha256": sha})
 
     bar = tqdm(total=cfg.pairs, unit="pair", desc=f"generate {cfg.task}", disable=not progress)
     if cfg.workers == 1:
-        _init_worker(cfg.task, cfg.image_size)
+        _init_worker(cfg.task, cfg.image_size, cfg.world_options)
         results = map(_make_chunk, jobs)
         pool = None
     else:
-        pool = mp.get_context("spawn").Pool(
-            cfg.workers, initializer=_init_worker, initargs=(cfg.task, cfg.image_size)
-        )
+        init = (cfg.task, cfg.image_size, cfg.world_options)
+        pool = mp.get_context("spawn").Pool(cfg.workers, initializer=_init_worker, initargs=init)
         results = pool.imap(_make_chunk, jobs)
     try:
         for rows in results:
@@ -160,6 +178,7 @@ def generate(
         "format": ds.FORMAT,
         "version": ds.VERSION,
         "task": cfg.task,
+        "spec": spec.to_json(),
         "image_size": cfg.image_size,
         "seed": cfg.seed,
         "counts": {
@@ -167,7 +186,10 @@ def generate(
             "action_pairs": n_action,
             "no_action_pairs": cfg.pairs - n_action,
         },
-        "config": {k: v for k, v in asdict(cfg).items() if k != "workers"},
+        "config": {
+            **{k: v for k, v in asdict(cfg).items() if k != "workers"},
+            "episode_length": length,
+        },
         "shards": shards,
     }
     ds.write_manifest(partial, manifest)

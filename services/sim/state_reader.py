@@ -34,7 +34,8 @@ class ReaderConfig:
     task: str = "box_stacking"
     image_size: int = 64
     cells: int = 9  # elements of the task's state array
-    values: int = 5  # classes per element: empty plus one per object
+    values: int = 5  # classes per element: the values start .. start + values - 1
+    start: int = -1  # the first value (box stacking: -1 = empty)
 
 
 class StateReader(nn.Module):
@@ -72,25 +73,30 @@ def _blur(x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     return out
 
 
-def reader_targets(states: np.ndarray) -> torch.Tensor:
-    """State arrays (-1 = empty) -> class ids per cell (0 = empty)."""
-    return torch.from_numpy(states.reshape(len(states), -1).astype(np.int64) + 1)
+def reader_targets(states: np.ndarray, start: int) -> torch.Tensor:
+    """State arrays -> class ids per element (value - start)."""
+    return torch.from_numpy(states.reshape(len(states), -1).astype(np.int64) - start)
 
 
 def train_reader(
     data: Dataset, out_dir: Path | str, epochs: int = 8, seed: int = 0, progress: bool = True
 ) -> dict[str, Any]:
     torch.manual_seed(seed)
-    task = get_task(data.task)
+    spec = data.spec.state
+    if spec is None:
+        raise ValueError(f"{data.task}: the dataset declares no states, there is nothing to read")
+    if len(set(spec.counts)) != 1:
+        raise ValueError("the state reader needs the same value range for every element")
     config = ReaderConfig(
         task=data.task,
         image_size=data.image_size,
-        cells=int(np.prod(task.state_array_shape)),
-        values=task.state_array_values + 1,
+        cells=len(spec.counts),
+        values=spec.counts[0],
+        start=spec.start,
     )
     model = StateReader(config)
     images = torch.from_numpy(np.concatenate([data.image1, data.image2]))
-    targets = reader_targets(np.concatenate([data.state1, data.state2]))
+    targets = reader_targets(np.concatenate([data.state1, data.state2]), config.start)
     optimiser = torch.optim.Adam(model.parameters(), lr=2e-3)
     generator = torch.Generator().manual_seed(seed)
     batch = 128
@@ -141,10 +147,11 @@ def load_reader(directory: Path | str) -> StateReader:
 
 @torch.inference_mode()
 def read_states(model: StateReader, images: np.ndarray, batch: int = 500) -> np.ndarray:
-    """uint8 images -> state arrays (-1 = empty), shaped like the task's state arrays."""
-    task = get_task(model.config.task)
+    """uint8 images -> state arrays, shaped and typed as the task's spec declares."""
+    spec = get_task(model.config.task).spec.state
+    assert spec is not None
     out = []
     for start in range(0, len(images), batch):
         x = to_tensor(torch.from_numpy(np.ascontiguousarray(images[start : start + batch])))
-        out.append(model(x).argmax(-1).numpy() - 1)
-    return np.concatenate(out).reshape(-1, *task.state_array_shape).astype(np.int8)
+        out.append(model(x).argmax(-1).numpy() + model.config.start)
+    return np.concatenate(out).reshape(-1, *spec.shape).astype(spec.dtype)

@@ -1,15 +1,35 @@
-"""World registry: the physical simulation of each task, by task name."""
+"""World registry: the physical simulation of each task, by task name.
+
+Entry points are "module:Class" strings (as Gymnasium's `register`), imported on first use, so
+that naming a task never loads MuJoCo.
+"""
 
 from __future__ import annotations
+
+import importlib
+from typing import Any
 
 from shared.tasks import get_task
 from shared.tasks.base import World
 
+_WORLDS: dict[str, str] = {
+    "box_stacking": "services.sim.box_stacking.world:BoxStackingWorld",
+    "cloth_folding": "services.sim.cloth_folding.world:ClothFoldingWorld",
+}
 
-def make_world(task_name: str, image_size: int = 64) -> World:
-    task = get_task(task_name)  # raises TaskError naming the known tasks
-    if task_name == "box_stacking":
-        from services.sim.box_stacking.world import BoxStackingWorld
 
-        return BoxStackingWorld(task, image_size=image_size)  # type: ignore[arg-type]
-    raise NotImplementedError(f"task {task_name!r} has no simulated world yet")
+def has_world(task_name: str) -> bool:
+    return task_name in _WORLDS
+
+
+def world_class(task_name: str) -> type[World]:
+    get_task(task_name)  # raises TaskError naming the known tasks
+    if task_name not in _WORLDS:
+        raise NotImplementedError(f"task {task_name!r} has no simulated world")
+    module, name = _WORLDS[task_name].split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def make_world(task_name: str, image_size: int = 64, **options: Any) -> World:
+    """The task's world; `options` go to its constructor (e.g. a cloth's `lattice`)."""
+    return world_class(task_name)(get_task(task_name), image_size=image_size, **options)

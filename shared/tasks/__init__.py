@@ -7,8 +7,9 @@ from functools import cache
 
 from shared.tasks.base import Task, TaskError
 from shared.tasks.box_stacking import BoxStacking
+from shared.tasks.cloth_folding import ClothFolding
 
-_TASKS: dict[str, Callable[[], Task]] = {"box_stacking": BoxStacking}
+_TASKS: dict[str, Callable[[], Task]] = {"box_stacking": BoxStacking, "cloth_folding": ClothFolding}
 
 
 def task_names() -> list[str]:

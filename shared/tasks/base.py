@@ -13,6 +13,8 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
+from shared.tasks.spec import TaskSpec
+
 State = TypeVar("State")
 Action = TypeVar("Action")
 
@@ -87,11 +89,11 @@ class Task(ABC, Generic[State, Action]):
         """Every state, for tasks small enough to enumerate; None otherwise."""
         return None
 
-    # --- fixed-shape array codecs (datasets, evaluation) ---
-    state_array_shape: tuple[int, ...]
-    action_array_shape: tuple[int, ...]
-    state_array_values: int  # elements of a state array lie in -1 (empty) .. this - 1
-    action_array_sizes: tuple[int, ...]  # element i of an action array lies in 0 .. sizes[i] - 1
+    # --- fixed-shape array codecs (datasets, evaluation), described by `spec` ---
+    @property
+    @abstractmethod
+    def spec(self) -> TaskSpec:
+        """dtype, shape and value range of the action and state arrays."""
 
     @abstractmethod
     def state_to_array(self, state: State) -> np.ndarray: ...
@@ -101,7 +103,7 @@ class Task(ABC, Generic[State, Action]):
 
     @abstractmethod
     def action_to_array(self, action: Action | None) -> np.ndarray:
-        """int array; None (no action) encodes as all -1."""
+        """Array of `spec.action`; None (no action) encodes as all -1."""
 
     @abstractmethod
     def array_to_action(self, array: np.ndarray) -> Action | None: ...
@@ -112,6 +114,9 @@ class World(ABC, Generic[State, Action]):
 
     task: Task[State, Action]
     image_size: int
+    # Tuples a data-generation walk makes from one reset: 1 when resetting is cheap; more when
+    # reaching a state costs physics (a folded cloth), so that resets do not dominate.
+    episode_length: int = 1
 
     @abstractmethod
     def reset(self, state: State, rng: np.random.Generator) -> State:
@@ -131,6 +136,17 @@ class World(ABC, Generic[State, Action]):
 
         An illegal action raises IllegalActionError and leaves the world unchanged.
         """
+
+    def perturb(self, rng: np.random.Generator) -> State:
+        """The same state looking slightly different (a no-action pair's second image).
+
+        By default the state is placed again with fresh noise.
+        """
+        return self.reset(self.read_state(), rng)
+
+    def demonstrated(self, action: Action, rng: np.random.Generator) -> Action:
+        """`action` as a demonstrator would give it (a few pixels off for clicks); exact here."""
+        return action
 
     def close(self) -> None:
         """Release rendering resources."""

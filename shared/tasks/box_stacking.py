@@ -19,6 +19,7 @@ from shared.tasks.base import (
     InvalidStateError,
     Task,
 )
+from shared.tasks.spec import ArraySpec, TaskSpec
 
 Stacks = tuple[tuple[str, ...], ...]
 
@@ -62,28 +63,37 @@ class BoxStacking(Task[Stacks, Move]):
             },
         }
 
-    @property
-    def state_array_shape(self) -> tuple[int, ...]:  # type: ignore[override]
-        return (self.config.levels, self.config.columns)
-
-    @property
-    def state_array_values(self) -> int:  # type: ignore[override]
-        return len(self.config.boxes)
-
-    @property
-    def action_array_sizes(self) -> tuple[int, ...]:  # type: ignore[override]
+    @cached_property
+    def spec(self) -> TaskSpec:  # type: ignore[override]
         c = self.config
-        return (c.levels, c.columns, c.levels, c.columns)
-
-    @property
-    def action_array_shape(self) -> tuple[int, ...]:  # type: ignore[override]
-        return (4,)
+        cells = [(r, col) for r in range(c.levels) for col in range(c.columns)]
+        return TaskSpec(
+            task=self.name,
+            action=ArraySpec(
+                dtype="int8",
+                shape=(4,),
+                names=("pick.row", "pick.col", "release.row", "release.col"),
+                counts=(c.levels, c.columns, c.levels, c.columns),
+                nullable=True,
+            ),
+            # [level, column] -> index of the box in `boxes`, -1 = empty
+            state=ArraySpec(
+                dtype="int8",
+                shape=(c.levels, c.columns),
+                names=tuple(f"cell[{r}][{col}]" for r, col in cells),
+                counts=(len(c.boxes) + 1,) * len(cells),
+                start=-1,
+            ),
+        )
 
     # ----- JSON codecs -----
     def parse_state(self, obj: Any) -> Stacks:
         c = self.config
         if not isinstance(obj, dict) or "stacks" not in obj:
             raise InvalidStateError("state: expected an object with a 'stacks' list")
+        extra = sorted(set(obj) - {"stacks"}, key=str)
+        if extra:
+            raise InvalidStateError(f"state: unknown key {extra[0]!r}; a state has only 'stacks'")
         stacks = obj["stacks"]
         if not isinstance(stacks, list | tuple):
             raise InvalidStateError("state.stacks: expected a list of columns")
@@ -216,7 +226,7 @@ class BoxStacking(Task[Stacks, Move]):
 
     # ----- array codecs -----
     def state_to_array(self, state: Stacks) -> np.ndarray:
-        grid = np.full(self.state_array_shape, -1, dtype=np.int8)
+        grid = np.full(self.spec.state.shape, -1, dtype=np.int8)
         for col, column in enumerate(state):
             for row, box in enumerate(column):
                 grid[row, col] = self.config.boxes.index(box)
@@ -224,8 +234,8 @@ class BoxStacking(Task[Stacks, Move]):
 
     def array_to_state(self, array: np.ndarray) -> Stacks:
         grid = np.asarray(array)
-        if grid.shape != self.state_array_shape:
-            raise InvalidStateError(f"state array: shape {grid.shape} != {self.state_array_shape}")
+        if grid.shape != self.spec.state.shape:
+            raise InvalidStateError(f"state array: shape {grid.shape} != {self.spec.state.shape}")
         stacks = []
         for col in range(self.config.columns):
             column = []

@@ -86,3 +86,51 @@ def test_action_share_is_exact():
 def test_bad_config(kw, message):
     with pytest.raises(ValueError, match=message):
         GenerateConfig(**kw)
+
+
+def test_cloth_dataset_walks_with_pixel_actions_in_int16(tmp_path):
+    cfg = GenerateConfig(
+        task="cloth_folding",
+        pairs=6,
+        seed=2,
+        image_size=32,
+        workers=1,
+        episode_length=3,
+        world_options={"lattice": 5},
+    )
+    result = generate(cfg, tmp_path / "c", progress=False)
+    data = load_dataset(tmp_path / "c")
+    task = get_task("cloth_folding")
+    assert result["config"]["episode_length"] == 3
+    assert result["config"]["world_options"] == {"lattice": 5}
+    assert data.spec == task.spec and data.u.dtype == np.int16 and data.u.shape == (6, 5)
+    for i in range(len(data)):
+        s1, s2 = task.array_to_state(data.state1[i]), task.array_to_state(data.state2[i])
+        action = task.array_to_action(data.u[i])
+        if data.a[i]:
+            assert task.apply(s1, action) == s2  # a noisy click, still the same move
+        else:
+            assert action is None and s1 == s2
+            assert not np.array_equal(data.image1[i], data.image2[i])  # perturbed
+        if i % 3:  # inside an episode each tuple starts where the last one ended
+            assert np.array_equal(data.image1[i], data.image2[i - 1])
+
+
+def test_arrays_that_break_the_spec_are_refused_before_writing(tmp_path):
+    from shared.dataset import write_shard
+
+    task = get_task("cloth_folding")
+    arrays = {
+        "image1": np.zeros((1, 8, 8, 3), np.uint8),
+        "image2": np.zeros((1, 8, 8, 3), np.uint8),
+        "a": np.ones(1, np.uint8),
+        "u": np.array([[300, 0, 0, 0, 1]], np.int16),
+        "state1": np.zeros((1, 4), np.int8),
+        "state2": np.zeros((1, 4), np.int8),
+    }
+    with pytest.raises(DatasetError, match=r"u\[0\]: pick.row = 300 is out of range 0..255"):
+        write_shard(tmp_path / "s.npz", arrays, task.spec)
+    arrays["u"] = arrays["u"].astype(np.int8)  # the old int8 would have wrapped 300 silently
+    with pytest.raises(DatasetError, match="expected int16"):
+        write_shard(tmp_path / "s.npz", arrays, task.spec)
+    assert not (tmp_path / "s.npz").exists()

@@ -88,6 +88,8 @@ def test_transition_graph_is_symmetric_and_counted():
         ({"stacks": [["red", 3], ["green"], ["blue", "yellow"]]}, "unknown box id 3"),
         ({"columns": []}, "'stacks'"),
         ([], "'stacks'"),
+        ({"stacks": [["red", "green"], ["blue"], ["yellow"]], "x": 1}, "unknown key 'x'"),
+        ({"stacks": [["red", "green"], ["blue"], ["yellow"]], "folds": []}, "unknown key 'folds'"),
     ],
 )
 def test_invalid_states_are_named(state, message):

@@ -1,0 +1,147 @@
+"""What a task's arrays look like, declared once and stored with every dataset.
+
+An `ArraySpec` describes one array field before any array exists (as dm_env's
+`BoundedArray` and Gymnasium's `MultiDiscrete(nvec, start=...)` do): its dtype, shape, element
+names and the integer range of each element. A `TaskSpec` bundles the action and state specs of
+one task. Datasets write it into their manifest, so consumers (APN widths, state readers, node
+labels) take shapes from the data they read, not from a registry lookup.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+NULL = -1  # an action array of all NULL encodes "no action"
+
+
+class SpecError(ValueError):
+    """An array or a JSON spec that does not match what it should; the message names it."""
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Integer array whose element i lies in start .. start + counts[i] - 1 (flattened order)."""
+
+    dtype: str
+    shape: tuple[int, ...]
+    names: tuple[str, ...]
+    counts: tuple[int, ...]
+    start: int = 0
+    nullable: bool = False  # the all-NULL array is allowed too (no-action pairs)
+    # Elements that are pixel coordinates: name -> image axis ("row" or "col"), in a square
+    # frame of `frame` pixels (LeRobot keeps such facts in a feature's `info`).
+    pixels: dict[str, str] = field(default_factory=dict)
+    frame: int | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "counts", tuple(int(c) for c in self.counts))
+        size = int(np.prod(self.shape))
+        if len(self.names) != size or len(self.counts) != size:
+            raise SpecError(
+                f"spec: {len(self.names)} names and {len(self.counts)} counts for {size} elements"
+            )
+        if min(self.counts) < 1:
+            raise SpecError("spec: every count must be at least 1")
+        try:
+            info = np.iinfo(np.dtype(self.dtype))
+        except (TypeError, ValueError):
+            raise SpecError(f"spec: dtype {self.dtype!r} is not an integer dtype") from None
+        low = min(self.start, NULL) if self.nullable else self.start
+        high = self.start + max(self.counts) - 1
+        if low < info.min or high > info.max:
+            raise SpecError(
+                f"spec: dtype {self.dtype} holds {info.min}..{info.max}, "
+                f"the values need {low}..{high}"
+            )
+        unknown = sorted(set(self.pixels) - set(self.names))
+        if unknown or any(axis not in ("row", "col") for axis in self.pixels.values()):
+            raise SpecError(f"spec: pixels must map element names to 'row' or 'col' ({unknown})")
+        if self.pixels and self.frame is None:
+            raise SpecError("spec: pixel elements need a frame size")
+
+    def validate(self, array: np.ndarray, field_name: str, batched: bool = True) -> None:
+        """Raise SpecError naming the field unless `array` (a batch when batched) fits."""
+        array = np.asarray(array)
+        shape = array.shape[1:] if batched else array.shape
+        if array.dtype != np.dtype(self.dtype) or shape != self.shape:
+            raise SpecError(
+                f"{field_name}: expected {self.dtype} of shape {self.shape}, "
+                f"got {array.dtype} {shape}"
+            )
+        flat = array.reshape(-1, len(self.names)).astype(np.int64)
+        low = np.array([self.start] * len(self.counts))
+        bad = (flat < low) | (flat >= low + np.array(self.counts))
+        if self.nullable:
+            bad &= ~(flat == NULL).all(axis=1, keepdims=True)
+        if bad.any():
+            row, col = (int(i) for i in np.argwhere(bad)[0])
+            raise SpecError(
+                f"{field_name}[{row}]: {self.names[col]} = {int(flat[row, col])} is out of range "
+                f"{self.start}..{self.start + self.counts[col] - 1}"
+            )
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "dtype": self.dtype,
+            "shape": list(self.shape),
+            "names": list(self.names),
+            "counts": list(self.counts),
+            "start": self.start,
+            "nullable": self.nullable,
+        }
+        if self.pixels:
+            out["pixels"] = dict(self.pixels)
+            out["frame"] = self.frame
+        return out
+
+    @classmethod
+    def from_json(cls, obj: Any, where: str) -> ArraySpec:
+        if not isinstance(obj, dict):
+            raise SpecError(f"{where}: expected an object")
+        try:
+            return cls(
+                dtype=str(obj["dtype"]),
+                shape=tuple(obj["shape"]),
+                names=tuple(obj["names"]),
+                counts=tuple(obj["counts"]),
+                start=int(obj.get("start", 0)),
+                nullable=bool(obj.get("nullable", False)),
+                pixels=dict(obj.get("pixels", {})),
+                frame=obj.get("frame"),
+            )
+        except KeyError as exc:
+            raise SpecError(f"{where}: missing {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise SpecError(f"{where}: {exc}") from None
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """The arrays of one task: `u` (actions) and, where states are known, `state1`/`state2`."""
+
+    task: str
+    action: ArraySpec
+    state: ArraySpec | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "task": self.task,
+            "action": self.action.to_json(),
+            "state": None if self.state is None else self.state.to_json(),
+        }
+
+    @classmethod
+    def from_json(cls, obj: Any) -> TaskSpec:
+        if not isinstance(obj, dict) or not isinstance(obj.get("task"), str):
+            raise SpecError("spec: expected an object with a 'task' name")
+        state = obj.get("state")
+        return cls(
+            task=obj["task"],
+            action=ArraySpec.from_json(obj.get("action"), "spec.action"),
+            state=None if state is None else ArraySpec.from_json(state, "spec.state"),
+        )
