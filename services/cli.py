@@ -79,34 +79,44 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Render a few states and one executed move into a contact sheet."""
+    """A contact sheet of rendered states: box stacking, five states and one executed move;
+    cloth folding, the whole state family."""
     import numpy as np
     from PIL import Image
 
+    from services.planner.sheets import describe
     from services.sim.worlds import make_world
     from shared.images import contact_sheet
 
-    task = get_task("box_stacking")
+    task = get_task(args.task)
     rng = np.random.default_rng(args.seed)
     states = task.all_states()
-    picks = [states[i] for i in rng.choice(len(states), size=5, replace=False)]
     images, labels = [], []
-    with make_world("box_stacking", args.size) as world:
-        for state in picks:
-            world.reset(state, rng)
-            images.append(world.render())
-            labels.append(" | ".join(",".join(b[0].upper() for b in col) or "-" for col in state))
-        state = picks[-1]
-        action = task.legal_actions(state)[0]
-        world.execute(action, rng)
+    with make_world(args.task, args.size) as world:
+        if args.task == "box_stacking":
+            picks = [states[i] for i in rng.choice(len(states), size=5, replace=False)]
+            for state in picks:
+                world.reset(state, rng)
+                images.append(world.render())
+                labels.append(" | ".join(",".join(b[0].upper() for b in c) or "-" for c in state))
+            action = task.legal_actions(picks[-1])[0]
+            world.execute(action, rng)
+            what, columns = "5 rendered states and the last one after a move", 3
+        else:
+            picks = list(states)
+            for state in picks:
+                world.reset(state, rng)
+                images.append(world.render())
+                labels.append(" ".join("".join(w[0].upper() for w in f.split("_")) for f in state))
+            action = task.legal_actions(picks[-1])[0]
+            world.execute(world.demonstrated(action, rng), rng)
+            what, columns = f"all {len(picks)} states and the last one after a move", 6
         images.append(world.render())
-        labels.append(
-            f"({action.pick.row},{action.pick.col})->({action.release.row},{action.release.col})"
-        )
+        labels.append(describe(action))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(contact_sheet(images, columns=3, labels=labels)).save(out)
-    print(f"wrote {out}: 5 rendered states and the last one after a move")
+    Image.fromarray(contact_sheet(images, columns=columns, labels=labels)).save(out)
+    print(f"wrote {out}: {what}")
     return 0
 
 
@@ -255,7 +265,10 @@ def cmd_plan(args: argparse.Namespace) -> int:
         plans = planner.plan(start, goal, max_plans=args.max_plans)
         args.out.mkdir(parents=True, exist_ok=True)
         for k, plan in enumerate(plans):
-            Image.fromarray(plan_sheet(plan, world.cell_pixel)).save(args.out / f"plan_{k}.png")
+            sheet = plan_sheet(
+                plan, world.action_pixels, arrows=bool(world.task.spec.action.pixels)
+            )
+            Image.fromarray(sheet).save(args.out / f"plan_{k}.png")
     summary = {"plans": [p.to_json(planner.task) for p in plans]}
     if not plans:
         summary["reason"] = "start and goal are not connected in the roadmap"
@@ -415,7 +428,12 @@ def build_parser() -> argparse.ArgumentParser:
     apn.add_argument("--vae", required=True, type=Path)
     apn.add_argument("--data", required=True, type=Path)
     apn.add_argument("--out", required=True, type=Path)
-    apn.add_argument("--head", default="classify", choices=["classify", "regress"])
+    apn.add_argument(
+        "--head",
+        default=None,
+        choices=["classify", "regress", "hybrid"],
+        help="default: classify small ranges; hybrid (pixels regressed) for pixel actions",
+    )
     apn.add_argument("--epochs", type=int, default=200)
     apn.add_argument("--samples", type=int, default=1, help="S draws from q(z|I) per pair")
     apn.add_argument("--seed", type=int, default=0)
@@ -487,6 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.set_defaults(handler=cmd_render)
 
     demo = sub.add_parser("demo", help="render a contact sheet of a few states")
+    demo.add_argument("--task", default="box_stacking", choices=task_names())
     demo.add_argument("--out", type=Path, default=Path("docs/images/box_stacking_states.png"))
     demo.add_argument("--size", type=int, default=128)
     demo.add_argument("--seed", type=int, default=0)

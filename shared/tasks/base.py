@@ -137,6 +137,10 @@ class World(ABC, Generic[State, Action]):
         An illegal action raises IllegalActionError and leaves the world unchanged.
         """
 
+    def action_pixels(self, action: Action) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Where `action` picks and releases in the rendered image, as (x, y) pixels."""
+        raise NotImplementedError(f"{type(self).__name__} does not locate actions in its images")
+
     def perturb(self, rng: np.random.Generator) -> State:
         """The same state looking slightly different (a no-action pair's second image).
 

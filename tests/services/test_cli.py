@@ -59,6 +59,22 @@ def test_render_rejects_an_invalid_state_clearly(tmp_path, capsys):
     assert not (tmp_path / "x.png").exists()
 
 
+def test_cloth_task_info_and_invalid_cloth_states(tmp_path, capsys):
+    proc = run_lsr("task", "info", "cloth_folding")
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads(proc.stdout)
+    assert info["num_states"] == 16 and info["image_frame"] == 256
+    out = tmp_path / "x.png"
+    for state, message in (
+        ('{"folds": ["top_left", "top_left"]}', "state.folds[1]: fold 'top_left' appears twice"),
+        ('{"folds": ["middle"]}', "state.folds[0]: unknown fold 'middle'"),
+        ('{"stacks": [["red"], [], []]}', "'folds' list (got keys ['stacks'])"),
+    ):
+        rc = main(["render", "--task", "cloth_folding", "--state", state, "--out", str(out)])
+        assert rc == 2 and message in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_demo_writes_a_png(tmp_path):
     out = tmp_path / "demo.png"
     assert main(["demo", "--out", str(out), "--size", "48"]) == 0

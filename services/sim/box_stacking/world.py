@@ -138,6 +138,9 @@ class BoxStackingWorld(World[Stacks, Move]):
             self.data.mocap_pos[self._mocap] = a + t * (b - a)
             mujoco.mj_step(self.model, self.data)
 
+    def action_pixels(self, action: Move) -> tuple[tuple[float, float], tuple[float, float]]:
+        return self.cell_pixel(*action.pick), self.cell_pixel(*action.release)
+
     def cell_pixel(self, row: int, col: int) -> tuple[float, float]:
         """Where the centre of a grid cell appears in the image (x right, y down, pixels)."""
         cam = self.model.camera("front")

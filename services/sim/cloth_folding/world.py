@@ -104,6 +104,15 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         y = -(pixel.row + 0.5 - half) * depth / self._focal
         return np.array([x, y, z])
 
+    def action_pixels(self, action: ClothAction) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Pick and release in this world's image: the action frame scaled to the image size."""
+        scale = self.image_size / self.task.config.frame
+        pick, release = action.pick, action.release
+        return (
+            ((pick.col + 0.5) * scale, (pick.row + 0.5) * scale),
+            ((release.col + 0.5) * scale, (release.row + 0.5) * scale),
+        )
+
     # ----- vertices -----
     def vertices(self) -> np.ndarray:
         return self.data.flexvert_xpos.copy()

@@ -64,7 +64,8 @@ def test_schedules():
     assert schedules(cfg, 0.5) == (1.0, 2.0)
     assert schedules(cfg, 1.0) == (1.0, 3.0)
     assert schedules(TrainConfig(metric="none"), 0.7)[1] == 0.0
-    assert TrainConfig(metric="inf").d_m == 2.5 and TrainConfig(metric="l2", dm=7).d_m == 7
+    assert TrainConfig(metric="inf").d_m() == 2.5 and TrainConfig(metric="l2", dm=7).d_m() == 7
+    assert TrainConfig(metric="l1").d_m("cloth_folding") == 13.5
 
 
 def test_bad_train_config():

@@ -41,11 +41,27 @@ def test_sheet_marks_pick_and_release():
 
     images = [np.full((32, 32, 3), 200, np.uint8)] * 2
     plan = VisualActionPlan([4, 7], images, [Move(Cell(0, 0), Cell(1, 2))], [0.99])
-    sheet = plan_sheet(plan, lambda row, col: (8.0 + 8 * col, 24.0 - 8 * row), scale=3)
+
+    def cells(move):
+        return [(8.0 + 8 * c.col, 24.0 - 8 * c.row) for c in move]
+
+    sheet = plan_sheet(plan, cells, scale=3)
     assert sheet.shape == (96 + 30, 2 * (96 + 4), 3)
     blue = (sheet[:, :, 2] > 200) & (sheet[:, :, 0] < 100)
     green = (sheet[:, :, 1] > 150) & (sheet[:, :, 0] < 100) & (sheet[:, :, 2] < 100)
     assert blue.any() and green.any()
+
+
+def test_sheet_draws_a_fold_as_an_arrow_from_pick_to_release():
+    from shared.tasks.cloth_folding import ClothAction, Pixel
+
+    images = [np.full((32, 32, 3), 200, np.uint8)] * 2
+    fold = ClothAction(Pixel(4, 4), Pixel(28, 28), 0)
+    plan = VisualActionPlan([0, 1], images, [fold], [0.9])
+    sheet = plan_sheet(plan, lambda a: ((4.5, 4.5), (28.5, 28.5)), arrows=True, scale=3)
+    green = (sheet[:, :, 1] > 150) & (sheet[:, :, 0] < 100) & (sheet[:, :, 2] < 100)
+    on_diagonal = [green[k, k] for k in range(30, 80)]  # the shaft runs along the diagonal
+    assert all(on_diagonal) and not green[80:96, :20].any()
 
 
 def test_cli_plan_from_states_and_images(tiny_model, tmp_path):
