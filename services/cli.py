@@ -279,14 +279,18 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 def cmd_eval_system(args: argparse.Namespace) -> int:
     from services.planner.action_plans import ActionPlanner
-    from services.sim.closed_loop import evaluate_system
+    from services.planner.build import load_labels
+    from services.sim.closed_loop import PlanJudge, evaluate_system
     from services.sim.worlds import make_world
 
     _single_thread_torch()
     planner = ActionPlanner.from_model_dir(args.model)
-    with make_world(planner.task.name, planner.image_size) as world:
+    labels = load_labels(Path(args.model) / "roadmap", planner.task.name)
+    task = planner.task
+    judge = PlanJudge(task, [task.array_to_state(s) for s in labels.states])
+    with make_world(task.name, planner.image_size) as world:
         result = evaluate_system(
-            planner, world, planner.task, args.pairs, seed=args.seed, max_steps=args.max_steps
+            planner, world, task, args.pairs, seed=args.seed, max_steps=args.max_steps, judge=judge
         )
     if not args.json:
         for key, value in result.items():

@@ -6,6 +6,7 @@ the ActionPlanner, in the service stack a client of the planning services.
 
 from __future__ import annotations
 
+import itertools
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -13,6 +14,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from services.planner.evaluate import TransitionChecker, path_verdict
 from shared.plans import VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError
 
@@ -31,6 +33,11 @@ class Episode:
     actions: list[Any] = field(default_factory=list)
     images: list[np.ndarray] = field(default_factory=list)  # observed after each action
     illegal_actions: int = 0
+    # For the paper's Table III: the plans of every planning step, the state before each
+    # executed action and the state after it.
+    plans: list[list[VisualActionPlan]] = field(default_factory=list)
+    chosen: list[VisualActionPlan] = field(default_factory=list)
+    states: list[Any] = field(default_factory=list)
 
 
 def run_episode(
@@ -54,15 +61,17 @@ def run_episode(
         world.reset(goal, rng)
         goal_image = world.render()
     state = world.reset(start, rng)
-    episode = Episode(success=False, reason="max_steps", final_state=state)
+    episode = Episode(success=False, reason="max_steps", final_state=state, states=[state])
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
         plans = planner.plan(world.render(), goal_image, max_plans)
+        episode.plans.append(plans)
         if not plans:
             episode.reason = "unreachable"
             break
         plan = most_confident(plans)
+        episode.chosen.append(plan)
         if not plan.actions:  # the planner sees start and goal in one region
             episode.reason = "planner_at_goal"
             break
@@ -79,6 +88,7 @@ def run_episode(
             episode.reason = f"physics: {exc}"
             break
         episode.actions.append(plan.actions[0])
+        episode.states.append(state)
         episode.images.append(world.render())
         if on_step is not None:
             on_step(len(episode.actions), plan.actions[0], state)
@@ -106,6 +116,33 @@ def optimal_moves(task: Task, start: Any, goal: Any) -> int | None:
     return None
 
 
+class PlanJudge:
+    """Judges plans by the states their roadmap nodes stand for (each node's majority state)."""
+
+    def __init__(self, task: Task, node_states: list[Any]) -> None:
+        self.task = task
+        self.node_states = node_states
+        self._checker = TransitionChecker(task)
+
+    def visual_plan_ok(self, plan: VisualActionPlan, start: Any, goal: Any) -> bool:
+        """The nodes run from the start state to the goal state, each step one legal move."""
+        states = [self.node_states[n] for n in plan.nodes]
+        return path_verdict(self._checker, states, start, goal)[0]
+
+    def action_plan_ok(self, plan: VisualActionPlan) -> bool:
+        """Every action, applied by the rules to its node's state, gives the next node's."""
+        for (a, b), action in zip(itertools.pairwise(plan.nodes), plan.actions, strict=True):
+            try:
+                if (
+                    action is None
+                    or self.task.apply(self.node_states[a], action) != (self.node_states[b])
+                ):
+                    return False
+            except IllegalActionError:
+                return False
+        return True
+
+
 def evaluate_system(
     planner: Planner,
     world: World,
@@ -114,12 +151,19 @@ def evaluate_system(
     seed: int = 0,
     max_steps: int = 20,
     progress: bool = True,
+    judge: PlanJudge | None = None,
 ) -> dict[str, Any]:
-    """Random start/goal state pairs run closed loop; success = the simulator reaches the goal."""
+    """Random start/goal state pairs run closed loop; success = the simulator reaches the goal.
+
+    With a `judge`, also the paper's Table III: correct single transitions (the state after an
+    executed action is the state of the plan's next node), VFM success (some visual plan of the
+    first planning step is correct) and APN success (the chosen plan's actions all are).
+    """
     from tqdm import tqdm
 
     rng = np.random.default_rng(seed)
     successes = steps_on_success = optimal_on_success = executed = illegal = 0
+    right_transitions = vfm_ok = apn_ok = 0
     reasons: dict[str, int] = {}
     for _ in tqdm(range(pairs), desc="closed loop", unit="pair", disable=not progress):
         start = task.sample_state(rng)
@@ -134,8 +178,14 @@ def evaluate_system(
             successes += 1
             steps_on_success += len(episode.actions)
             optimal_on_success += optimal_moves(task, start, goal) or 0
+        if judge is not None:
+            first = episode.plans[0] if episode.plans else []
+            vfm_ok += any(judge.visual_plan_ok(p, start, goal) for p in first)
+            apn_ok += bool(episode.chosen) and judge.action_plan_ok(episode.chosen[0])
+            for plan, after in zip(episode.chosen, episode.states[1:], strict=False):
+                right_transitions += judge.node_states[plan.nodes[1]] == after
     attempted = executed + illegal
-    return {
+    result = {
         "pairs": pairs,
         "success": 100.0 * successes / pairs,
         "mean_steps": steps_on_success / successes if successes else None,
@@ -147,3 +197,11 @@ def evaluate_system(
         "max_steps": max_steps,
         "seed": seed,
     }
+    if judge is not None:
+        result["table3"] = {
+            "system": result["success"],
+            "transitions": 100.0 * right_transitions / attempted if attempted else None,
+            "vfm": 100.0 * vfm_ok / pairs,
+            "apn": 100.0 * apn_ok / pairs,
+        }
+    return result

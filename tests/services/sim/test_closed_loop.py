@@ -75,3 +75,71 @@ def test_shipped_model_reaches_easy_goals(world):
     planner = ActionPlanner.from_model_dir(SHIPPED)
     result = evaluate_system(planner, world, world.task, pairs=5, seed=3, progress=False)
     assert result["success"] == 100.0 and result["legal_actions"] == 100.0
+
+
+def shortest_path(task, start, goal):
+    """States and actions of one breadth-first shortest path."""
+    parent = {start: None}
+    frontier = [start]
+    while goal not in parent:
+        nxt = []
+        for s in frontier:
+            for action, t in task.neighbours(s):
+                if t not in parent:
+                    parent[t] = (s, action)
+                    nxt.append(t)
+        frontier = nxt
+    states, actions, s = [goal], [], goal
+    while parent[s] is not None:
+        s, action = parent[s]
+        states.append(s)
+        actions.append(action)
+    return states[::-1], actions[::-1]
+
+
+class SeeingWorld:
+    """The world, remembering which state each rendered image showed."""
+
+    def __init__(self, world):
+        self.world, self.seen = world, {}
+
+    def render(self):
+        image = self.world.render()
+        self.seen[image.tobytes()] = self.world.read_state()
+        return image
+
+    def __getattr__(self, name):
+        return getattr(self.world, name)
+
+
+class NodePlanner:
+    """Shortest paths of the true state graph, node ids = state indices so that a PlanJudge can
+    check them; `lie` swaps in a wrong first action."""
+
+    def __init__(self, world, lie=False):
+        self.world, self.lie = world, lie
+
+    def plan(self, start, goal, max_plans=8):
+        task, seen = self.world.task, self.world.seen
+        states, actions = shortest_path(task, seen[start.tobytes()], seen[goal.tobytes()])
+        if self.lie and len(actions) > 1:
+            actions = [actions[1], *actions[1:]]
+        nodes = [task.all_states().index(s) for s in states]
+        return [VisualActionPlan(nodes, [], actions, [1.0] * len(actions))]
+
+
+def test_table3_counts_right_plans_and_wrong_actions(world):
+    from services.sim.closed_loop import PlanJudge
+
+    task, seeing = world.task, SeeingWorld(world)
+    judge = PlanJudge(task, list(task.all_states()))
+
+    def run(lie):
+        planner = NodePlanner(seeing, lie)
+        return evaluate_system(planner, seeing, task, 4, seed=5, progress=False, judge=judge)
+
+    honest = run(lie=False)["table3"]
+    assert honest == {"system": 100.0, "transitions": 100.0, "vfm": 100.0, "apn": 100.0}
+    liar = run(lie=True)
+    assert liar["table3"]["vfm"] == 100.0  # the visual plans are right ...
+    assert liar["table3"]["apn"] < 100.0  # ... their first actions are not
