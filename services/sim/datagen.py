@@ -57,10 +57,13 @@ def action_flags(cfg: GenerateConfig) -> np.ndarray:
     return flags
 
 
-def make_episode(task: Task, world: World, seed: int, start: int, flags: list[int]) -> list[dict]:
+def make_episode(
+    task: Task, world: World, seed: int, start: int, flags: list[int]
+) -> tuple[list[dict], int]:
     """Tuples start .. start + len(flags) - 1: one walk from a random state, each tuple's second
     state the next one's first. Seeded by (seed, start, attempt) alone, so the bytes do not
-    depend on how episodes are spread over workers; a walk whose physics fails starts again."""
+    depend on how episodes are spread over workers; a walk whose physics fails starts again.
+    Returns the tuples and the number of failed attempts before them."""
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, start, attempt])
         try:
@@ -92,7 +95,7 @@ def make_episode(task: Task, world: World, seed: int, start: int, flags: list[in
                     }
                 )
                 state1 = state2
-            return rows
+            return rows, attempt
         except WorldError as exc:
             last = exc
     raise WorldError(f"episode at tuple {start}: physics failed {MAX_ATTEMPTS} times, last: {last}")
@@ -108,13 +111,16 @@ def _init_worker(task_name: str, image_size: int, options: dict[str, Any]) -> No
     _worker = (get_task(task_name), make_world(task_name, image_size, **options))
 
 
-def _make_chunk(job: tuple[int, list[tuple[int, list[int]]]]) -> list[dict]:
+def _make_chunk(job: tuple[int, list[tuple[int, list[int]]]]) -> tuple[list[dict], int]:
     assert _worker is not None
     seed, episodes = job
     task, world = _worker
-    return [
-        row for start, flags in episodes for row in make_episode(task, world, seed, start, flags)
-    ]
+    rows, retries = [], 0
+    for start, flags in episodes:
+        made, failed = make_episode(task, world, seed, start, flags)
+        rows += made
+        retries += failed
+    return rows, retries
 
 
 def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
@@ -143,6 +149,7 @@ def generate(
     started = time.perf_counter()
     shards: list[dict[str, Any]] = []
     pending: list[dict] = []
+    retries = 0  # episodes started again after the physics failed
 
     def flush(rows: list[dict]) -> None:
         name = ds.shard_name(len(shards))
@@ -159,7 +166,8 @@ def generate(
         pool = mp.get_context("spawn").Pool(cfg.workers, initializer=_init_worker, initargs=init)
         results = pool.imap(_make_chunk, jobs)
     try:
-        for rows in results:
+        for rows, failed in results:
+            retries += failed
             pending.extend(rows)
             bar.update(len(rows))
             while len(pending) >= cfg.shard_size:
@@ -191,6 +199,7 @@ def generate(
             "episode_length": length,
         },
         "shards": shards,
+        "physics_retries": retries,
     }
     ds.write_manifest(partial, manifest)
     if out.exists():

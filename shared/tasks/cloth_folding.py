@@ -58,6 +58,9 @@ class ClothFoldingConfig:
     frame: int = 256  # pixels of the action frame (square), whatever size the model works at
     cloth_pixels: float = 160.0  # side of the flat cloth in that frame
     tolerance: float = 10.0  # pixels a click may land from a move's canonical point
+    # Fold: pick a hair outside the corner (a gripper closes on it from there), so that a click
+    # a few pixels off still grasps the corner and not the cloth next to it.
+    fold_pick: float = 1.04
     # Unfold: pick the flap near its tip (which lies on the centre, with every other tip), at
     # this share of the way from the centre to the corner, and lay it on its mirror image.
     unfold_pick: float = 0.15
@@ -93,7 +96,7 @@ class ClothFolding(Task[Folds, ClothAction]):
         out = {}
         for corner in c.corners:
             fold = ClothAction(
-                self._pixel(self.point(corner, 1.0)),
+                self._pixel(self.point(corner, c.fold_pick)),
                 self._pixel(self.point(corner, 0.0)),
                 0,
             )

@@ -94,7 +94,7 @@ def test_action_json_round_trip_and_arrays_hold_every_pixel():
 
 def test_clicks_match_within_tolerance():
     fold = TASK.moves["fold", "top_left"].action
-    assert fold.pick == Pixel(48, 48) and fold.release == Pixel(128, 128)
+    assert fold.pick == Pixel(44, 44) and fold.release == Pixel(128, 128)  # corner at 48
     near = act(fold.pick.row + 6, fold.pick.col - 7, 125, 131, 0)  # 9.2 px and 4.2 px off
     assert TASK.apply((), near) == ("top_left",)
     far = act(fold.pick.row + 8, fold.pick.col + 8, 128, 128, 0)  # 11.3 px off
