@@ -1,0 +1,100 @@
+"""`lsr eval`: the paper's tables, measured."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from services.cli.common import single_thread_torch
+
+
+def cmd_eval_vfm(args: argparse.Namespace) -> int:
+    from services.planner.eval_vfm import run_vfm_eval
+    from services.planner.evaluate import plot_class_distances
+
+    reader = args.reader or (args.model / "state_reader")
+    row, analysis = run_vfm_eval(
+        args.model,
+        args.test,
+        pairs=args.pairs,
+        seed=args.seed,
+        max_paths=args.max_paths,
+        reader_dir=reader if reader.is_dir() else None,
+        train_dir=args.train,
+    )
+    if args.figure and analysis is not None:
+        plot_class_distances({args.model.name: analysis}, args.figure)
+    if not args.json:
+        for key, value in row.items():
+            print(f"{key:>32}: {value}")
+    print(json.dumps(row))
+    return 0
+
+
+def cmd_eval_apn(args: argparse.Namespace) -> int:
+    from services.apn.train import evaluate_apn
+
+    result = evaluate_apn(args.apn or args.model / "apn", args.model / "vae", args.test)
+    if not args.json:
+        for key, value in result.items():
+            print(f"{key:>20}: {value}")
+    print(json.dumps(result))
+    return 0
+
+
+def cmd_eval_system(args: argparse.Namespace) -> int:
+    from services.planner.action_plans import ActionPlanner
+    from services.planner.build import load_labels
+    from services.sim.closed_loop import PlanJudge, evaluate_system
+    from services.sim.worlds import make_world
+
+    single_thread_torch()
+    planner = ActionPlanner.from_model_dir(args.model)
+    labels = load_labels(Path(args.model) / "roadmap", planner.task.name)
+    task = planner.task
+    judge = PlanJudge(task, [task.array_to_state(s) for s in labels.states])
+    with make_world(task.name, planner.image_size) as world:
+        result = evaluate_system(
+            planner, world, task, args.pairs, seed=args.seed, max_steps=args.max_steps, judge=judge
+        )
+    if not args.json:
+        for key, value in result.items():
+            print(f"{key:>20}: {value}")
+    print(json.dumps(result))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    evals = sub.add_parser("eval", help="evaluations").add_subparsers(dest="sub", required=True)
+    vfm = evals.add_parser("vfm", help="Table I: plans between unseen test images")
+    vfm.add_argument("--model", required=True, type=Path, help="folder with vae/ and roadmap/")
+    vfm.add_argument("--test", required=True, type=Path)
+    vfm.add_argument("--pairs", type=int, default=1000)
+    vfm.add_argument("--seed", type=int, default=0)
+    vfm.add_argument("--max-paths", type=int, default=1000)
+    vfm.add_argument("--reader", type=Path, help="default: MODEL/state_reader when present")
+    vfm.add_argument(
+        "--train",
+        type=Path,
+        help="training set for the class-distance analysis "
+        "(default: the VAE's recorded training set, when present)",
+    )
+    vfm.add_argument("--figure", type=Path, help="PNG of the class-distance analysis")
+    vfm.add_argument("--json", action="store_true", help="print only the JSON line")
+    vfm.set_defaults(handler=cmd_eval_vfm)
+
+    eapn = evals.add_parser("apn", help="APN accuracy on unseen action pairs")
+    eapn.add_argument("--model", required=True, type=Path, help="folder with vae/ and apn/")
+    eapn.add_argument("--apn", type=Path, help="APN folder (default: MODEL/apn)")
+    eapn.add_argument("--test", required=True, type=Path)
+    eapn.add_argument("--json", action="store_true")
+    eapn.set_defaults(handler=cmd_eval_apn)
+
+    system = evals.add_parser("system", help="closed-loop execution in simulation")
+    system.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    system.add_argument("--pairs", type=int, default=1000)
+    system.add_argument("--seed", type=int, default=0)
+    system.add_argument("--max-steps", type=int, default=20)
+    system.add_argument("--json", action="store_true")
+    system.set_defaults(handler=cmd_eval_system)

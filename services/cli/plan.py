@@ -1,0 +1,68 @@
+"""`lsr plan`: visual action plans in process, with contact sheets."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from services.cli.common import json_arg, single_thread_torch
+
+
+def _image_or_state(task, world, image: Path | None, state: str | None, rng, name: str):
+    """A start or goal given as a PNG/JPEG file or as a state rendered by the sim."""
+    from shared.images import decode_image
+
+    if (image is None) == (state is None):
+        raise ValueError(f"give exactly one of --{name}-image and --{name}-state")
+    if image is not None:
+        return decode_image(Path(image).read_bytes(), size=world.image_size), None
+    parsed = task.parse_state(json_arg(state))
+    world.reset(parsed, rng)
+    return world.render(), parsed
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    import numpy as np
+    from PIL import Image
+
+    from services.planner.action_plans import ActionPlanner
+    from services.planner.sheets import plan_sheet
+    from services.sim.worlds import make_world
+
+    single_thread_torch()
+    planner = ActionPlanner.from_model_dir(args.model)
+    rng = np.random.default_rng(args.seed)
+    with make_world(planner.task.name, planner.image_size) as world:
+        start, _ = _image_or_state(
+            planner.task, world, args.start_image, args.start_state, rng, "start"
+        )
+        goal, _ = _image_or_state(
+            planner.task, world, args.goal_image, args.goal_state, rng, "goal"
+        )
+        plans = planner.plan(start, goal, max_plans=args.max_plans)
+        args.out.mkdir(parents=True, exist_ok=True)
+        for k, plan in enumerate(plans):
+            sheet = plan_sheet(
+                plan, world.action_pixels, arrows=bool(world.task.spec.action.pixels)
+            )
+            Image.fromarray(sheet).save(args.out / f"plan_{k}.png")
+    summary = {"plans": [p.to_json(planner.task) for p in plans]}
+    if not plans:
+        summary["reason"] = "start and goal are not connected in the roadmap"
+    (args.out / "plans.json").write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"{len(plans)} plan(s) written to {args.out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    plan = sub.add_parser("plan", help="visual action plans from a start to a goal")
+    plan.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    plan.add_argument("--start-state", help="state JSON, inline or a file path")
+    plan.add_argument("--start-image", type=Path, help="PNG or JPEG of the start")
+    plan.add_argument("--goal-state", help="state JSON, inline or a file path")
+    plan.add_argument("--goal-image", type=Path, help="PNG or JPEG of the goal")
+    plan.add_argument("--max-plans", type=int, default=4)
+    plan.add_argument("--seed", type=int, default=0, help="noise of rendered states")
+    plan.add_argument("--out", required=True, type=Path)
+    plan.set_defaults(handler=cmd_plan)

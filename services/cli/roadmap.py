@@ -1,0 +1,34 @@
+"""`lsr build-roadmap`: the Latent Space Roadmap of a trained VAE."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def cmd_build_roadmap(args: argparse.Namespace) -> int:
+    from services.encoder.checkpoint import read_vae_config
+    from services.planner.build import build_from_dataset, default_metric
+    from services.planner.roadmap import RoadmapConfig
+
+    metric = args.metric or default_metric(read_vae_config(args.vae))
+    config = RoadmapConfig(metric=metric, w_eps=args.w_eps, min_samples=args.min_samples)
+    summary = build_from_dataset(args.vae, args.data, config, args.out)
+    print(json.dumps(summary))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    roadmap = sub.add_parser("build-roadmap", help="build the Latent Space Roadmap of a VAE")
+    roadmap.add_argument("--vae", required=True, type=Path)
+    roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
+    roadmap.add_argument("--w-eps", type=float, default=1.0)
+    roadmap.add_argument("--min-samples", type=int, default=3)
+    roadmap.add_argument(
+        "--metric",
+        choices=["l1", "l2", "inf"],
+        help="default: the VAE's training metric (l1 for the baseline)",
+    )
+    roadmap.add_argument("--out", required=True, type=Path)
+    roadmap.set_defaults(handler=cmd_build_roadmap)

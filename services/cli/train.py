@@ -1,0 +1,118 @@
+"""`lsr train`: the action-VAE, the state reader and the APN."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from services.cli.common import single_thread_torch
+
+
+def cmd_train_vae(args: argparse.Namespace) -> int:
+    from services.encoder.train import TrainConfig, dm_from_baseline, train_vae
+    from shared.dataset import load_dataset
+
+    dm: float | None = None
+    meta = {}
+    if args.dm == "auto":
+        if args.metric == "none":
+            raise ValueError("--dm auto needs a metric other than none")
+        if args.baseline is None:
+            raise ValueError("--dm auto needs --baseline DIR, a VAE trained with --metric none")
+        dm = dm_from_baseline(args.baseline, load_dataset(args.data), args.metric)
+        meta["dm_auto"] = {"baseline": str(args.baseline), "value": dm}
+        print(f"d_m from the baseline's mean action-pair distance: {dm:.3f}")
+    elif args.dm is not None:
+        dm = float(args.dm)
+    cfg = TrainConfig(
+        metric=args.metric,
+        dm=dm,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr_drop_epoch=args.lr_drop_epoch,
+        beta_max=args.beta_max,
+        action_on=args.action_on,
+        seed=args.seed,
+        threads=args.threads,
+    )
+    record = train_vae(args.data, args.out, cfg, extra_meta=meta)
+    print(json.dumps(record))
+    return 0
+
+
+def cmd_train_reader(args: argparse.Namespace) -> int:
+    from services.sim.state_reader import load_reader, read_states, train_reader
+    from shared.dataset import load_dataset
+
+    meta = train_reader(load_dataset(args.data), args.out, epochs=args.epochs, seed=args.seed)
+    print(f"trained in {meta['train']['seconds']:.0f} s on {meta['train']['images']} images")
+    if args.test:
+        from services.planner.eval_vfm import load_test_images
+
+        images, states, _ = load_test_images(args.test)
+        reads = read_states(load_reader(args.out), images)
+        accuracy = 100.0 * float((reads == states).reshape(len(images), -1).all(1).mean())
+        print(json.dumps({"test_images": len(images), "state_accuracy": accuracy}))
+    return 0
+
+
+def cmd_train_apn(args: argparse.Namespace) -> int:
+    from services.apn.train import APNTrainConfig, train_apn
+
+    single_thread_torch()  # a 7k-parameter MLP: threads only add overhead
+    cfg = APNTrainConfig(head=args.head, epochs=args.epochs, samples=args.samples, seed=args.seed)
+    meta = train_apn(args.vae, args.data, args.out, cfg)
+    print(json.dumps({"best": meta["best"], "pairs": meta["pairs"], "seconds": meta["seconds"]}))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    train = sub.add_parser("train", help="train models").add_subparsers(dest="sub", required=True)
+    vae = train.add_parser("vae", help="train the action-VAE (metric none = baseline VAE-b)")
+    vae.add_argument("--data", required=True, type=Path, help="training dataset folder")
+    vae.add_argument("--metric", default="l1", choices=["l1", "l2", "inf", "none"])
+    vae.add_argument("--out", required=True, type=Path)
+    vae.add_argument(
+        "--dm",
+        default=None,
+        help="action margin d_m: a number, or auto "
+        "(mean action-pair distance under --baseline); default: the paper's value",
+    )
+    vae.add_argument("--baseline", type=Path, help="VAE-b folder, for --dm auto")
+    vae.add_argument("--epochs", type=int, default=30)
+    vae.add_argument("--batch-size", type=int, default=64)
+    vae.add_argument("--lr-drop-epoch", type=int, default=20)
+    vae.add_argument("--beta-max", type=float, default=1.0)
+    vae.add_argument(
+        "--action-on",
+        default="sample",
+        choices=["sample", "mean"],
+        help="latents the action term sees: reparameterised samples or means",
+    )
+    vae.add_argument("--seed", type=int, default=0)
+    vae.add_argument("--threads", type=int, default=2)
+    vae.set_defaults(handler=cmd_train_vae)
+
+    reader = train.add_parser("reader", help="train the image -> state reader used by evals")
+    reader.add_argument("--data", required=True, type=Path)
+    reader.add_argument("--out", required=True, type=Path)
+    reader.add_argument("--test", type=Path, help="test set to report accuracy on")
+    reader.add_argument("--epochs", type=int, default=8)
+    reader.add_argument("--seed", type=int, default=0)
+    reader.set_defaults(handler=cmd_train_reader)
+
+    apn = train.add_parser("apn", help="train the Action Proposal Network on a VAE's latents")
+    apn.add_argument("--vae", required=True, type=Path)
+    apn.add_argument("--data", required=True, type=Path)
+    apn.add_argument("--out", required=True, type=Path)
+    apn.add_argument(
+        "--head",
+        default=None,
+        choices=["classify", "regress", "hybrid"],
+        help="default: classify small ranges; hybrid (pixels regressed) for pixel actions",
+    )
+    apn.add_argument("--epochs", type=int, default=200)
+    apn.add_argument("--samples", type=int, default=1, help="S draws from q(z|I) per pair")
+    apn.add_argument("--seed", type=int, default=0)
+    apn.set_defaults(handler=cmd_train_apn)
