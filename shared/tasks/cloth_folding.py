@@ -62,8 +62,9 @@ class ClothFoldingConfig:
     # a few pixels off still grasps the corner and not the cloth next to it.
     fold_pick: float = 1.04
     # Unfold: pick the flap near its tip (which lies on the centre, with every other tip), at
-    # this share of the way from the centre to the corner, and lay it on its mirror image.
-    unfold_pick: float = 0.15
+    # this share of the way from the centre to the corner (on the 9 x 9 cloth: the centre of
+    # the flap's corner square, 14 px from every other vertex), and lay it on its mirror image.
+    unfold_pick: float = 0.125
 
     def __post_init__(self) -> None:
         unknown = [c for c in self.corners if c not in CORNER_DIRECTIONS]

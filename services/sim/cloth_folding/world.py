@@ -212,7 +212,10 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
     def execute(self, action: ClothAction, rng: np.random.Generator) -> Folds:
         state = self.read_state()
         self.task.check_action(state, action)  # raises before anything moves
-        self._carry(action)
+        try:
+            self._carry(action)
+        except InvalidActionError as exc:  # a legal move, but the cloth is not where it expects
+            raise WorldError(f"the cloth has moved away from the move's pick: {exc}") from None
         return self.read_state()
 
     def grasp_vertex(self, pick: Pixel, height: int) -> int:

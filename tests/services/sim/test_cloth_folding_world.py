@@ -1,4 +1,4 @@
-"""The cloth world on a tiny lattice (5 x 5, 41 vertices): the same physics in a fraction of the
+"""The cloth world on a small lattice (7 x 7, 85 vertices): the same physics in a fraction of the
 time; the full-size cloth only where a test needs it."""
 
 import numpy as np
@@ -12,7 +12,7 @@ from shared.tasks.cloth_folding import ClothAction, Pixel
 
 @pytest.fixture(scope="module")
 def cloth():
-    w = ClothFoldingWorld(image_size=32, lattice=5)
+    w = ClothFoldingWorld(image_size=32, lattice=7)
     yield w
     w.close()
 

@@ -96,13 +96,13 @@ def test_cloth_dataset_walks_with_pixel_actions_in_int16(tmp_path):
         image_size=32,
         workers=1,
         episode_length=3,
-        world_options={"lattice": 5},
+        world_options={"lattice": 7},
     )
     result = generate(cfg, tmp_path / "c", progress=False)
     data = load_dataset(tmp_path / "c")
     task = get_task("cloth_folding")
     assert result["config"]["episode_length"] == 3
-    assert result["config"]["world_options"] == {"lattice": 5}
+    assert result["config"]["world_options"] == {"lattice": 7}
     assert data.spec == task.spec and data.u.dtype == np.int16 and data.u.shape == (6, 5)
     for i in range(len(data)):
         s1, s2 = task.array_to_state(data.state1[i]), task.array_to_state(data.state2[i])
