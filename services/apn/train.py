@@ -95,7 +95,7 @@ def train_apn(
     best_state: dict[str, torch.Tensor] = {}
     log = []
     started = time.perf_counter()
-    for epoch in tqdm(range(cfg.epochs), desc=f"train apn-{cfg.head}", disable=not progress):
+    for epoch in tqdm(range(cfg.epochs), desc=f"train apn-{head}", disable=not progress):
         lr = cfg.lr / 10 ** sum(epoch >= d for d in cfg.lr_drops)
         for group in optimiser.param_groups:
             group["lr"] = lr

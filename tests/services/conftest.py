@@ -62,3 +62,39 @@ def tiny_model(tmp_path_factory):
         == 0
     )
     return model, data
+
+
+@pytest.fixture(scope="session")
+def tiny_cloth_model(tmp_path_factory):
+    """A tiny cloth dataset (7 x 7 cloth, 32 px) and a model trained on it in seconds."""
+    root = tmp_path_factory.mktemp("tiny_cloth")
+    data = root / "train"
+    cfg = GenerateConfig(
+        task="cloth_folding",
+        pairs=40,
+        seed=3,
+        image_size=32,
+        workers=1,
+        world_options={"lattice": 7},
+    )
+    generate(cfg, data, progress=False)
+    model = root / "model"
+    vae, roadmap, apn = (str(model / part) for part in ("vae", "roadmap", "apn"))
+    steps = [
+        ["train", "vae", "--data", str(data), "--out", vae, "--epochs", "4", "--batch-size", "8"],
+        [
+            "build-roadmap",
+            "--vae",
+            vae,
+            "--data",
+            str(data),
+            "--out",
+            roadmap,
+            "--min-samples",
+            "1",
+        ],
+        ["train", "apn", "--vae", vae, "--data", str(data), "--out", apn, "--epochs", "3"],
+    ]
+    for args in steps:
+        assert main(args) == 0
+    return model, data

@@ -51,3 +51,29 @@ def test_train_load_evaluate(tiny_model):
 def test_load_error(tmp_path):
     with pytest.raises(ValueError, match="not an APN folder"):
         load_apn(tmp_path)
+
+
+def test_hybrid_head_regresses_pixels_and_classifies_the_height():
+    sizes = (256, 256, 256, 256, 2)
+    model = APN(APNConfig(latent_dim=8, action_sizes=sizes, head="hybrid"))
+    assert model.config.regressed == (True, True, True, True, False)
+    output = model(torch.randn(6, 8), torch.randn(6, 8))
+    assert output.shape == (6, 4 + 2)
+    action, confidence = model.predict(output)
+    assert action.shape == (6, 5) and action[:, :4].max() <= 255 and action[:, 4].max() <= 1
+    assert ((confidence > 0) & (confidence <= 1)).all()  # the height's probability
+    model.loss(output, torch.tensor([[40, 200, 128, 128, 1]] * 6)).backward()
+    # sigmoid(0) = 0.5 of 0..255 rounds to 128 (127.5 -> 128)
+    action, _ = model.predict(torch.zeros(1, 6))
+    assert action[0, :4].tolist() == [128] * 4
+
+
+def test_cloth_apn_reports_table_two(tiny_cloth_model):
+    model_dir, data = tiny_cloth_model
+    _, meta = load_apn(model_dir / "apn")
+    assert meta["model"]["head"] == "hybrid"  # chosen from the dataset's spec: pixels
+    assert len(meta["action_scaled"]["std"]) == 5
+    result = evaluate_apn(model_dir / "apn", model_dir / "vae", data)
+    mse = result["mse"]
+    assert mse["total"] >= mse["pick"] + mse["release"] - 1e-9 and mse["pick"] >= 0
+    assert result["pick_pixels"]["mean"] >= 0 and 0 <= result["same_move"] <= 100

@@ -132,3 +132,38 @@ def test_a_roadmap_without_nodes_scores_zero():
         "box_stacking", roadmap, empty, z, np.zeros((6, 3, 3), np.int8), np.array([[0, 1]]), 5
     )
     assert (result["all"], result["any"], result["no_path"]) == (0.0, 0.0, 1)
+
+
+def test_cloth_pipeline_evaluates_and_plans(tiny_cloth_model, tmp_path, capsys):
+    """The box-stacking evaluations run unchanged on the cloth task: Table I with a state
+    reader, plans with fold arrows, and Table III in the closed loop."""
+    from services.planner.action_plans import ActionPlanner
+    from services.planner.build import load_labels
+    from services.sim.closed_loop import PlanJudge, evaluate_system
+    from services.sim.cloth_folding.world import ClothFoldingWorld
+
+    model, train = tiny_cloth_model
+    reader = tmp_path / "reader"
+    assert (
+        main(["train", "reader", "--data", str(train), "--out", str(reader), "--epochs", "1"]) == 0
+    )
+    capsys.readouterr()
+    args = ["eval", "vfm", "--model", str(model), "--test", str(train), "--pairs", "20"]
+    assert main([*args, "--reader", str(reader), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert 0 <= row["all"] <= row["any"] <= 100 and "decoded_agreement" in row
+
+    out = tmp_path / "plans"
+    states = ['{"folds": ["top_left"]}', '{"folds": ["bottom_right"]}']
+    assert main(["plan", "--model", str(model), "--out", str(out), "--start-state", states[0],
+                 "--goal-state", states[1]]) == 0  # fmt: skip
+    for plan in json.loads((out / "plans.json").read_text())["plans"]:
+        assert all(set(a) == {"pick", "release", "height"} for a in plan["actions"])
+
+    planner = ActionPlanner.from_model_dir(model)
+    labels = load_labels(model / "roadmap", "cloth_folding")
+    judge = PlanJudge(planner.task, [planner.task.array_to_state(s) for s in labels.states])
+    with ClothFoldingWorld(image_size=32, lattice=7) as world:
+        result = evaluate_system(planner, world, planner.task, 2, max_steps=3, judge=judge)
+    assert sum(result["outcomes"].values()) == 2
+    assert set(result["table3"]) == {"system", "transitions", "vfm", "apn"}
