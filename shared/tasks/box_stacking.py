@@ -61,6 +61,7 @@ class BoxStacking(Task[Stacks, Move]):
                 "pick": {"row": "level of the top box of the pick column", "col": "0..columns-1"},
                 "release": {"row": "current height of the release column", "col": "0..columns-1"},
             },
+            "spec": self.spec.to_json(),
         }
 
     @cached_property

@@ -165,7 +165,7 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         return after
 
     def _agreeing(self, points: np.ndarray, state: Folds) -> np.ndarray:
-        return _far(points[:, :2], self._references[state]) == 0
+        return ~_far(points[:, :2], self._references[state])
 
     def demonstrated(self, action: ClothAction, rng: np.random.Generator) -> ClothAction:
         """`action` as a demonstrator would click it: a few pixels off, still the same move."""
@@ -190,10 +190,9 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         return self.camera.render(self.data)
 
     def read_state(self) -> Folds:
-        points = self.vertices()
-        if not np.isfinite(points).all():
+        if not np.isfinite(self.data.flexvert_xpos).all():
             raise WorldError("the cloth's vertices are not finite: the simulation diverged")
-        shares = {s: _far_share(points[:, :2], ref) for s, ref in self._references.items()}
+        shares = self.far_shares()
         best = min(shares, key=shares.__getitem__)
         if shares[best] >= MAX_FAR_SHARE:
             raise WorldError(
@@ -206,7 +205,7 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
     def far_shares(self) -> dict[Folds, float]:
         """Share of vertices far from each state's reference: the read-back's evidence."""
         points = self.vertices()[:, :2]
-        return {s: _far_share(points, ref) for s, ref in self._references.items()}
+        return {s: float(_far(points, ref).mean()) for s, ref in self._references.items()}
 
     # ----- acting -----
     def execute(self, action: ClothAction, rng: np.random.Generator) -> Folds:
@@ -263,7 +262,8 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
 
         self.data.mocap_pos[self._grip] = start
         self.data.mocap_quat[self._grip] = (1, 0, 0, 0)
-        for slot, held in zip(self._pads, sorted(self._ring[vertex]), strict=False):
+        pad = sorted(self._ring[vertex])  # at most 9: a lattice vertex and its 8 neighbours
+        for slot, held in zip(self._pads[: len(pad)], pad, strict=True):
             self.model.eq_obj2id[slot] = self._vertex_body[held]
             self.model.eq_data[slot, :6] = 0.0
             self.model.eq_data[slot, :3] = points[held] - start  # pad offset, gripper frame
@@ -307,7 +307,7 @@ def _rigid(points: np.ndarray, rng: np.random.Generator, shift: float, turn: flo
 
 
 def _far(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """1 for each vertex over FAR from `reference` after the best rigid 2-D alignment, fitted
+    """Which vertices lie over FAR from `reference` after the best rigid 2-D alignment, fitted
     again on the vertices that agree (a folded flap must not pull the fit)."""
     keep = np.ones(len(points), bool)
     for _ in range(3):
@@ -316,11 +316,7 @@ def _far(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
         if (~far).sum() < 3 or np.array_equal(~far, keep):
             break
         keep = ~far
-    return far.astype(np.uint8)
-
-
-def _far_share(points: np.ndarray, reference: np.ndarray) -> float:
-    return float(_far(points, reference).mean())
+    return far
 
 
 def _fit(
