@@ -17,10 +17,13 @@ from typing import Any
 import anyio
 import zenoh
 from fastapi import FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from fastapi.routing import APIRoute
 from pydantic import ValidationError
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from services.gateway.inputs import BodyError, clip, error_detail, parse_json
 from services.gateway.planning import Gateway, plan_query_error
 from services.gateway.schemas import (
     ExecuteRequest,
@@ -50,18 +53,70 @@ API_PLAN_WORKERS = 4
 
 
 def error_body(exc: Exception) -> tuple[int, Any] | None:
-    """The HTTP status and `detail` for the errors the gateway expects; None for a bug."""
+    """The HTTP status and `detail` for the errors the gateway expects; None for a bug.
+
+    Details name the field and echo at most a short excerpt of the input (`inputs.error_detail`).
+    """
+    if isinstance(exc, BodyError):
+        return exc.status, exc.detail()
     if isinstance(exc, FieldError):
         loc = ["body", *exc.field.split(".")]
-        return 422, [{"loc": loc, "msg": str(exc), "type": "value_error"}]
+        return 422, error_detail([{"loc": loc, "msg": str(exc), "type": "value_error"}])
     if isinstance(exc, ValidationError):
-        errors = json.loads(exc.json(include_url=False, include_context=False))
-        return 422, [{**e, "loc": ["body", *e["loc"]]} for e in errors]
+        return 422, error_detail(exc.errors(include_url=False), prefix=["body"])
+    if isinstance(exc, RequestValidationError):  # FastAPI's: locations start with "body"
+        return 422, error_detail(exc.errors())
     if isinstance(exc, ServiceUnavailable):
-        return 503, str(exc)
+        return 503, clip(str(exc))
     if isinstance(exc, RemoteError):
-        return (422 if exc.error.code == "bad_request" else 502), str(exc)
+        return (422 if exc.error.code == "bad_request" else 502), clip(str(exc))
     return None
+
+
+def is_json(content_type: str | None) -> bool:
+    kind = (content_type or "").split(";", 1)[0].strip().lower()
+    return kind == "application/json" or (
+        kind.startswith("application/") and kind.endswith("+json")
+    )
+
+
+class GuardedRequest(Request):
+    """A request whose JSON body is parsed within limits (`inputs.parse_json`), not as FastAPI
+    would: any size of structure, then every error echoed with its whole input."""
+
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            try:
+                self._json = parse_json(await self.body())
+            except BodyError as exc:
+                raise HTTPException(exc.status, exc.detail()) from None
+        return self._json
+
+
+class GuardedRoute(APIRoute):
+    """Routes that take JSON bodies only, parsed by GuardedRequest."""
+
+    def get_route_handler(self) -> Callable[[Request], Any]:
+        handler = super().get_route_handler()
+        takes_body = self.body_field is not None
+
+        async def guarded(request: Request) -> Response:
+            if takes_body and not is_json(request.headers.get("content-type")):
+                # Anything else would reach validation as raw bytes (and their echo as a 500).
+                detail = error_detail(
+                    [
+                        {
+                            "loc": ["header", "content-type"],
+                            "msg": "send the body as application/json",
+                            "type": "unsupported_media_type",
+                            "input": request.headers.get("content-type"),
+                        }
+                    ]
+                )
+                return JSONResponse({"detail": detail}, status_code=415)
+            return await handler(GuardedRequest(request.scope, request.receive))
+
+        return guarded
 
 
 class BodyLimit:
@@ -103,7 +158,9 @@ class BodyLimit:
         await send({"type": "http.response.body", "body": body})
 
 
-def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[], None]:
+def serve_plan_queries(
+    session: zenoh.Session, gateway: Gateway, max_bytes: int
+) -> Callable[[], None]:
     """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out."""
     pending: queue.Queue[zenoh.Query | None] = queue.Queue()
     queryable = session.declare_queryable(API_PLAN_KEY, pending.put, complete=True)
@@ -111,7 +168,7 @@ def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[],
     def work() -> None:
         while (query := pending.get()) is not None:
             try:
-                answer_plan_query(query, gateway)
+                answer_plan_query(query, gateway, max_bytes)
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("could not answer %s", API_PLAN_KEY)
             del query  # dropping a query finishes it
@@ -127,15 +184,18 @@ def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[],
     return stop
 
 
-def answer_plan_query(query: zenoh.Query, gateway: Gateway) -> None:
+def answer_plan_query(query: zenoh.Query, gateway: Gateway, max_bytes: int) -> None:
+    """Answer one `lsr/api/plan` query; every query gets a reply, an error one at worst."""
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
-        response, _ = gateway.plan(PlanRequest.model_validate_json(payload))
+        if len(payload) > max_bytes:
+            raise BodyError(413, ["body"], f"payload over {max_bytes} bytes", "too_large")
+        response, _ = gateway.plan(PlanRequest.model_validate(parse_json(payload)))
     except Exception as exc:
         known = error_body(exc)
         if known is None:
             log.exception("lsr/api/plan failed")
-            known = (500, f"{type(exc).__name__}: {exc}")
+            known = (500, clip(f"{type(exc).__name__}: {exc}"))
         query.reply_err(plan_query_error(*known), encoding=JSON)
         return
     query.reply(query.key_expr, response.model_dump_json(), encoding=JSON)
@@ -152,7 +212,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             alive_key("gateway", settings.instance or new_instance_id())
         )
         app.state.gateway = Gateway(session, settings)
-        stop_queries = serve_plan_queries(session, app.state.gateway)
+        stop_queries = serve_plan_queries(session, app.state.gateway, settings.max_body_bytes)
         yield
         stop_queries()
         token.undeclare()
@@ -170,8 +230,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         headers = {"Retry-After": "1"} if status == 503 else None
         return JSONResponse({"detail": detail}, status_code=status, headers=headers)
 
-    for kind in (FieldError, ServiceUnavailable, RemoteError):
+    for kind in (FieldError, ServiceUnavailable, RemoteError, RequestValidationError):
         app.add_exception_handler(kind, known_error)
+    app.router.route_class = GuardedRoute
 
     def gateway(request: Request) -> Gateway:
         return request.app.state.gateway

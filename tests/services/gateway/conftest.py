@@ -1,0 +1,67 @@
+"""A real gateway (uvicorn on a loopback port) joined to a real zenoh router, no services.
+
+Enough for everything the gateway judges itself: bodies, validation, limits, deadlines of calls
+to services that are absent or played by the test.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import httpx
+import pytest
+import uvicorn
+
+from services.gateway.app import create_app
+from services.stack import free_port
+from shared.bus import BusConfig, close_quietly, open_session
+from shared.settings import Settings
+
+
+@dataclass
+class LiveGateway:
+    url: str
+    endpoint: str  # the router's
+    settings: Settings
+
+
+@pytest.fixture(scope="module")
+def router_endpoint() -> Iterator[str]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(BusConfig(mode="router", listen=[endpoint]))
+    yield endpoint
+    close_quietly(router)
+
+
+def serve(settings: Settings) -> Iterator[str]:
+    """Run the gateway app in a thread until the generator is closed; yields its URL."""
+    server = uvicorn.Server(
+        uvicorn.Config(
+            create_app(settings), host="127.0.0.1", port=settings.port, log_level="warning"
+        )
+    )
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "gateway did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{settings.port}"
+    server.should_exit = True
+    thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def live_gateway(router_endpoint: str) -> Iterator[LiveGateway]:
+    settings = Settings(zenoh_connect=router_endpoint, port=free_port(), deadline_s=1.0)
+    for url in serve(settings):
+        yield LiveGateway(url, router_endpoint, settings)
+
+
+@pytest.fixture(scope="module")
+def http(live_gateway: LiveGateway) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=live_gateway.url, timeout=30) as client:
+        yield client
