@@ -9,6 +9,7 @@ Key layout (documented in docs/services.md):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -403,7 +404,8 @@ class Server:
                 self._answer(batch, work)
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("%s could not answer a query", self.service)
-            del batch  # a query is finished when dropped: callers waiting on ALL see it at once
+            finally:
+                finish(batch)
 
     def _next_batch(self, pending: Pending, max_batch: int) -> list[zenoh.Query] | None:
         """The oldest query and those queued behind it, expired ones dropped; None: stop."""
@@ -423,6 +425,7 @@ class Server:
             if time.monotonic() - arrived <= budget_s(query):
                 live.append(query)
                 continue
+            finish([query])  # unanswered: the caller has stopped waiting
             with self._expired_lock:
                 self.expired += 1
                 expired = self.expired
@@ -485,6 +488,17 @@ class Server:
         for pending in self._queues:
             pending.put(None)
         self.token.undeclare()
+
+
+def finish(queries: Sequence[zenoh.Query]) -> None:
+    """Finalize queries now, so that their callers see the end of the replies at once.
+
+    Left to the garbage collector, a query lives as long as anything refers to it (a traceback
+    in a reference cycle, say), and its caller waits until its own timeout.
+    """
+    for query in queries:
+        with contextlib.suppress(Exception):  # already dropped
+            query.drop()
 
 
 def _ms_since(started: float) -> float:

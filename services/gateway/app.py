@@ -41,6 +41,7 @@ from shared.bus import (
     ServiceUnavailable,
     alive_key,
     close_quietly,
+    finish,
     new_instance_id,
     open_session,
 )
@@ -171,7 +172,8 @@ def serve_plan_queries(
                 answer_plan_query(query, gateway, max_bytes)
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("could not answer %s", API_PLAN_KEY)
-            del query  # dropping a query finishes it
+            finally:
+                finish([query])
 
     for i in range(API_PLAN_WORKERS):
         threading.Thread(target=work, name=f"api-plan#{i}", daemon=True).start()

@@ -6,6 +6,7 @@ to services that are absent or played by the test.
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Iterator
@@ -65,3 +66,19 @@ def live_gateway(router_endpoint: str) -> Iterator[LiveGateway]:
 def http(live_gateway: LiveGateway) -> Iterator[httpx.Client]:
     with httpx.Client(base_url=live_gateway.url, timeout=30) as client:
         yield client
+
+
+@pytest.fixture(scope="session")
+def wide_body() -> bytes:
+    """A JSON object of 340,000 distinct short keys: about 3 MB, under the body limit."""
+    digits = "0123456789abcdefghijklmnopqrstuvwxyz"
+
+    def name(i: int) -> str:
+        out = ""
+        while True:
+            i, r = divmod(i, 36)
+            out = digits[r] + out
+            if not i:
+                return out
+
+    return json.dumps({name(i): 1 for i in range(340_000)}, separators=(",", ":")).encode()
