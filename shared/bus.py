@@ -191,9 +191,10 @@ class PendingCall:
 
     The query goes to one instance: the next live one by `replicas`, or, before any is known, to
     the shared key (where every instance is a complete queryable, so zenoh picks one). A query
-    that nobody serves ends at once; it is sent again, to another instance, while the deadline
-    allows. A query that is served but not answered in time is not repeated: the work would only
-    pile up on a slow instance.
+    that ends unanswered before its deadline (nobody serves it, or the instance that held it
+    died) is sent again, to another live instance, for up to UNSERVED_GRACE_S. A query that is
+    still held when the deadline comes is not repeated: the work would only pile up on a slow
+    instance.
     """
 
     session: zenoh.Session
@@ -238,25 +239,29 @@ class PendingCall:
     def result(self) -> BaseModel:
         unserved_since: float | None = None
         while True:
-            started = time.monotonic()
+            timed_out = False
             for reply in self.replies:  # type: ignore[attr-defined]
                 if reply.ok is not None:
                     self.round_trip_ms = (time.perf_counter() - self.sent_at) * 1e3
                     self.served = _meta(reply.ok.attachment)
                     return _decode(self.service, reply.ok.payload.to_bytes(), self.reply_type)
                 if reply.err.encoding != MSGPACK:  # zenoh's own "Timeout": no answer came
+                    timed_out = True
                     continue
                 error: ErrorReply = _decode(self.service, reply.err.payload.to_bytes(), ErrorReply)
                 if error.code == "unavailable":  # a service this one depends on is down
                     raise ServiceUnavailable(error.field or self.service, error.message)
                 raise RemoteError(self.service, error)
             now = time.monotonic()
-            if now - started >= 0.05:  # served, but silent until the deadline
+            if timed_out or now >= self.deadline:  # served, but silent until the deadline
                 raise ServiceUnavailable(self.service, f"no reply in time on {self.key}")
+            # Ended unanswered before the deadline: nobody served the query, or the instance
+            # that had it is gone (killed, or stalled and then dead) before its token. The work
+            # was lost with it, so sending it to another instance repeats nothing.
             if self.instance is not None and self.replicas is not None:
-                self.replicas.forget(self.service, self.instance)  # gone before its token
+                self.replicas.forget(self.service, self.instance)
             unserved_since = unserved_since or now
-            if now - unserved_since > UNSERVED_GRACE_S or now > self.deadline:
+            if now - unserved_since > UNSERVED_GRACE_S:
                 raise ServiceUnavailable(self.service, f"no instance serves {self.key}")
             time.sleep(0.02)
             self._send()
