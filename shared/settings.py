@@ -27,6 +27,9 @@ class Settings(BaseSettings):
     deadline_s: float = Field(4.5, gt=0, description="per service call, retries included")
     execute_step_s: float = Field(3.0, gt=0, description="/execute allowance per step")
     max_body_bytes: int = Field(4 * 1024 * 1024, gt=0)
+    body_timeout_s: float = Field(
+        10.0, gt=0, description="a request body must arrive within this (408 after)"
+    )
     host: str = "127.0.0.1"
     port: int = 8000
 

@@ -10,6 +10,7 @@ import json
 import logging
 import queue
 import threading
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
@@ -121,29 +122,46 @@ class GuardedRoute(APIRoute):
 
 
 class BodyLimit:
-    """Answers 413 to bodies over `limit` bytes, declared or streamed, before anyone reads them."""
+    """Answers 413 to bodies over `limit` bytes, declared or streamed, before anyone reads them,
+    and 408 to bodies not complete `timeout_s` after the request began (clients that dribble a
+    body would otherwise hold a connection and a worker for ever). Both close the connection.
+    """
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+    def __init__(self, app: ASGIApp, limit: int, timeout_s: float | None = None) -> None:
         self.app = app
         self.limit = limit
+        self.timeout_s = timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            return await self._too_large(send)
+            return await self._refuse(send, 413, f"request body over {self.limit} bytes")
+        deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
         received = 0
-        refused = False
+        complete = refused = False
 
         async def limited() -> Message:
-            nonlocal received, refused
-            message = await receive()
+            nonlocal received, complete, refused
+            if refused:
+                return {"type": "http.disconnect"}
+            if complete or deadline is None:
+                message = await receive()
+            else:
+                with anyio.move_on_after(max(0.0, deadline - time.monotonic())) as waiting:
+                    message = await receive()
+                    complete = not message.get("more_body", False)
+                if waiting.cancelled_caught:
+                    refused = True
+                    detail = f"request body not complete within {self.timeout_s} s"
+                    await self._refuse(send, 408, detail)
+                    return {"type": "http.disconnect"}  # the app stops reading here
             received += len(message.get("body", b""))
-            if received > self.limit and not refused:
+            if received > self.limit:
                 refused = True
-                await self._too_large(send)
-                return {"type": "http.disconnect"}  # the app stops reading here
+                await self._refuse(send, 413, f"request body over {self.limit} bytes")
+                return {"type": "http.disconnect"}
             return message
 
         async def unless_refused(message: Message) -> None:
@@ -152,10 +170,14 @@ class BodyLimit:
 
         await self.app(scope, limited, unless_refused)
 
-    async def _too_large(self, send: Send) -> None:
-        body = json.dumps({"detail": f"request body over {self.limit} bytes"}).encode()
-        headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
-        await send({"type": "http.response.start", "status": 413, "headers": headers})
+    async def _refuse(self, send: Send, status: int, detail: str) -> None:
+        body = json.dumps({"detail": detail}).encode()
+        headers = [
+            (b"content-type", b"application/json"),
+            (b"content-length", b"%d" % len(body)),
+            (b"connection", b"close"),  # the rest of the body is never read
+        ]
+        await send({"type": "http.response.start", "status": status, "headers": headers})
         await send({"type": "http.response.body", "body": body})
 
 
@@ -266,5 +288,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:
         return gateway(request).execute(body)
 
-    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
     return app

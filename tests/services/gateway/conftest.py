@@ -9,8 +9,9 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import httpx
 import pytest
@@ -53,6 +54,17 @@ def serve(settings: Settings) -> Iterator[str]:
     yield f"http://127.0.0.1:{settings.port}"
     server.should_exit = True
     thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def gateway_with(router_endpoint: str) -> Callable[..., Iterator[str]]:
+    """`yield from gateway_with(**settings)` in a fixture: a gateway of those settings."""
+
+    def start(**overrides: Any) -> Iterator[str]:
+        settings = Settings(zenoh_connect=router_endpoint, port=free_port(), **overrides)
+        yield from serve(settings)
+
+    return start
 
 
 @pytest.fixture(scope="module")
