@@ -24,7 +24,9 @@ class Settings(BaseSettings):
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
     tasks: list[str] = ["box_stacking"]
-    deadline_s: float = Field(4.5, gt=0, description="per service call, retries included")
+    deadline_s: float = Field(
+        4.0, gt=0, description="per request: all its service calls, retries included"
+    )
     execute_step_s: float = Field(3.0, gt=0, description="/execute allowance per step")
     max_body_bytes: int = Field(4 * 1024 * 1024, gt=0)
     body_timeout_s: float = Field(
