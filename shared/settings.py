@@ -32,6 +32,10 @@ class Settings(BaseSettings):
     body_timeout_s: float = Field(
         10.0, gt=0, description="a request body must arrive within this (408 after)"
     )
+    max_in_flight: int = Field(32, ge=1, description="/plan and /render requests in progress")
+    max_executing: int = Field(4, ge=1, description="/execute requests in progress")
+    max_queued: int = Field(256, ge=0, description="requests waiting for a slot; more: 503")
+    queue_wait_s: float = Field(2.0, ge=0, description="longest wait for a slot; then 503")
     host: str = "127.0.0.1"
     port: int = 8000
 

@@ -52,6 +52,7 @@ from shared.validation import FieldError
 
 log = logging.getLogger(__name__)
 API_PLAN_WORKERS = 4
+ARRIVED = "lsr.arrived"  # scope key: when Admission first saw the request (time.monotonic())
 
 
 def error_body(exc: Exception) -> tuple[int, Any] | None:
@@ -181,21 +182,106 @@ class BodyLimit:
         await send({"type": "http.response.body", "body": body})
 
 
+class Admission:
+    """Sheds what the gateway cannot serve in time, quickly, instead of queueing without bound.
+
+    At most `limit` requests to `paths` are in progress; the next ones wait for a slot, at most
+    `queue` of them and each at most `wait_s`. A request that would wait longer than that (by the
+    recent time per request and the queue ahead of it), or find the queue full, gets 503 at once
+    (`Retry-After: 1`); one whose wait runs out gets it then. A waiting request holds no body in
+    memory (it is not read yet). Each request's arrival time goes into its scope (`ARRIVED`),
+    so that its deadline counts the wait.
+    """
+
+    def __init__(
+        self, app: ASGIApp, paths: frozenset[str], limit: int, queue: int, wait_s: float
+    ) -> None:
+        self.app = app
+        self.paths = paths
+        self.limit = limit
+        self.queue = queue
+        self.wait_s = wait_s
+        self.waiting = 0
+        self.service_s: float | None = None  # moving average of a request's time in progress
+        self._slots: anyio.Semaphore | None = None  # made on the event loop, on first use
+
+    def expected_wait_s(self) -> float:
+        if self._slots is None or self._slots.value > 0 or self.service_s is None:
+            return 0.0
+        return (self.waiting + 1) * self.service_s / self.limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"] not in self.paths:
+            return await self.app(scope, receive, send)
+        scope[ARRIVED] = time.monotonic()
+        if self._slots is None:
+            self._slots = anyio.Semaphore(self.limit)
+        if self._slots.value == 0 and (
+            self.waiting >= self.queue or self.expected_wait_s() > self.wait_s
+        ):
+            return await self._overloaded(send)
+        admitted = False
+        self.waiting += 1
+        try:
+            with anyio.move_on_after(self.wait_s):
+                await self._slots.acquire()
+                admitted = True
+        finally:
+            self.waiting -= 1
+        if not admitted:
+            return await self._overloaded(send)
+        started = time.monotonic()
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self._slots.release()
+            took = time.monotonic() - started
+            self.service_s = took if self.service_s is None else 0.9 * self.service_s + 0.1 * took
+
+    async def _overloaded(self, send: Send) -> None:
+        detail = f"gateway overloaded: {self.limit} requests in progress, {self.waiting} waiting"
+        body = json.dumps({"detail": detail}).encode()
+        headers = [
+            (b"content-type", b"application/json"),
+            (b"content-length", b"%d" % len(body)),
+            (b"retry-after", b"1"),
+        ]
+        await send({"type": "http.response.start", "status": 503, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+
 def serve_plan_queries(
-    session: zenoh.Session, gateway: Gateway, max_bytes: int
+    session: zenoh.Session, gateway: Gateway, settings: Settings
 ) -> Callable[[], None]:
-    """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out."""
-    pending: queue.Queue[zenoh.Query | None] = queue.Queue()
-    queryable = session.declare_queryable(API_PLAN_KEY, pending.put, complete=True)
+    """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out.
+
+    Like REST, it sheds load: a query arriving while `settings.max_queued` wait gets 503 at
+    once, and one still queued at its deadline (LSR_DEADLINE_S from arrival) gets 503 unworked.
+    """
+    pending: queue.Queue[tuple[float, zenoh.Query] | None] = queue.Queue()
+
+    def arrived(query: zenoh.Query) -> None:
+        if pending.qsize() >= settings.max_queued:
+            overloaded(query, f"{pending.qsize()} queries waiting")
+            return
+        pending.put((time.monotonic(), query))
+
+    queryable = session.declare_queryable(API_PLAN_KEY, arrived, complete=True)
 
     def work() -> None:
-        while (query := pending.get()) is not None:
+        while (item := pending.get()) is not None:
+            came, query = item
+            deadline = came + settings.deadline_s
             try:
-                answer_plan_query(query, gateway, max_bytes)
+                if time.monotonic() >= deadline:
+                    overloaded(query, "waited past its deadline")
+                else:
+                    answer_plan_query(query, gateway, settings.max_body_bytes, deadline)
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("could not answer %s", API_PLAN_KEY)
             finally:
                 finish([query])
+            del item, query
 
     for i in range(API_PLAN_WORKERS):
         threading.Thread(target=work, name=f"api-plan#{i}", daemon=True).start()
@@ -208,13 +294,22 @@ def serve_plan_queries(
     return stop
 
 
-def answer_plan_query(query: zenoh.Query, gateway: Gateway, max_bytes: int) -> None:
+def overloaded(query: zenoh.Query, why: str) -> None:
+    try:
+        query.reply_err(plan_query_error(503, f"gateway overloaded: {why}"), encoding=JSON)
+    finally:
+        finish([query])
+
+
+def answer_plan_query(
+    query: zenoh.Query, gateway: Gateway, max_bytes: int, deadline: float | None = None
+) -> None:
     """Answer one `lsr/api/plan` query; every query gets a reply, an error one at worst."""
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
         if len(payload) > max_bytes:
             raise BodyError(413, ["body"], f"payload over {max_bytes} bytes", "too_large")
-        response, _ = gateway.plan(PlanRequest.model_validate(parse_json(payload)))
+        response, _ = gateway.plan(PlanRequest.model_validate(parse_json(payload)), deadline)
     except Exception as exc:
         known = error_body(exc)
         if known is None:
@@ -236,7 +331,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             alive_key("gateway", settings.instance or new_instance_id())
         )
         app.state.gateway = Gateway(session, settings)
-        stop_queries = serve_plan_queries(session, app.state.gateway, settings.max_body_bytes)
+        stop_queries = serve_plan_queries(session, app.state.gateway, settings)
         yield
         stop_queries()
         token.undeclare()
@@ -272,15 +367,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise HTTPException(404, f"unknown task {task!r}; known tasks are {task_names()}")
         return get_task(task).info()
 
+    def deadline(request: Request) -> float:
+        """LSR_DEADLINE_S from the request's arrival: any wait for admission counts."""
+        return request.scope.get(ARRIVED, time.monotonic()) + settings.deadline_s
+
     @app.post("/render")
     def render(body: RenderRequest, request: Request) -> RenderResponse:
-        return gateway(request).render(body)
+        return gateway(request).render(body, deadline(request))
 
     @app.post("/plan", response_model=PlanResponse)
     def plan(body: PlanRequest, request: Request) -> Response:
         # Serialised by pydantic-core in one pass: plans carry many images, and FastAPI's own
         # re-validation of the returned model would cost more than the planning.
-        response, timing = gateway(request).plan(body)
+        response, timing = gateway(request).plan(body, deadline(request))
         headers = {"Server-Timing": timing}
         return Response(response.model_dump_json(), media_type="application/json", headers=headers)
 
@@ -289,4 +388,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return gateway(request).execute(body)
 
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
+    # Outermost: a request waiting for admission is not read yet. /execute holds its worker
+    # for many seconds, so it has its own, smaller share.
+    for paths, limit in [
+        (frozenset({"/plan", "/render"}), settings.max_in_flight),
+        (frozenset({"/execute"}), settings.max_executing),
+    ]:
+        app.add_middleware(
+            Admission,
+            paths=paths,
+            limit=limit,
+            queue=settings.max_queued,
+            wait_s=settings.queue_wait_s,
+        )
     return app
