@@ -14,12 +14,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 import uvicorn
 
 from services.gateway.app import create_app
 from services.stack import free_port
-from shared.bus import BusConfig, close_quietly, open_session
+from shared.bus import BusConfig, Server, close_quietly, open_session, service_key
+from shared.messages import EncodeReply, RenderReply, WireArray
 from shared.settings import Settings
 
 
@@ -94,3 +96,41 @@ def wide_body() -> bytes:
                 return out
 
     return json.dumps({name(i): 1 for i in range(340_000)}, separators=(",", ":")).encode()
+
+
+STEP_S = 0.3  # what each slow service before the hanging planner takes
+
+
+@pytest.fixture(scope="module")
+def slow_services(router_endpoint):
+    """A sim and an encoder that take STEP_S each, and a planner that hangs (8 s at most)."""
+    session = open_session(BusConfig(connect=[router_endpoint], open_timeout_s=5))
+    release = threading.Event()
+
+    def render(_: bytes) -> RenderReply:
+        time.sleep(STEP_S)
+        return RenderReply(images=WireArray.of(np.zeros((2, 8, 8, 3), np.uint8)))
+
+    def encode(_: bytes) -> EncodeReply:
+        time.sleep(STEP_S)
+        return EncodeReply(latents=WireArray.of(np.zeros((2, 4), np.float32)))
+
+    def paths(_: bytes) -> EncodeReply:
+        release.wait(8)  # a planner hang
+        raise RuntimeError("hung")
+
+    servers = []
+    for service, operation, handler in [
+        ("sim", "render", render),
+        ("encoder", "encode", encode),
+        ("planner", "paths", paths),
+    ]:
+        server = Server(session, service, f"{service}-stub")
+        server.serve(service_key(service, "box_stacking", operation), handler)
+        servers.append(server)
+    time.sleep(0.3)
+    yield
+    release.set()
+    for server in servers:
+        server.close()
+    close_quietly(session)

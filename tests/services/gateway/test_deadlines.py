@@ -2,56 +2,15 @@
 
 from __future__ import annotations
 
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 import httpx
-import numpy as np
 import pytest
 
-from shared.bus import BusConfig, Server, close_quietly, open_session, service_key
-from shared.messages import EncodeReply, RenderReply, WireArray
-
 DEADLINE_S = 1.0
-STEP_S = 0.3  # what each service before the hanging one takes
 STATE = {"stacks": [["red"], ["green", "blue"], ["yellow"]]}
 PLAN = {"task": "box_stacking", "start": {"state": STATE}, "goal": {"state": STATE}}
-
-
-@pytest.fixture(scope="module")
-def slow_services(router_endpoint):
-    """A sim and an encoder that take STEP_S each, and a planner that hangs."""
-    session = open_session(BusConfig(connect=[router_endpoint], open_timeout_s=5))
-    release = threading.Event()
-
-    def render(_: bytes) -> RenderReply:
-        time.sleep(STEP_S)
-        return RenderReply(images=WireArray.of(np.zeros((2, 8, 8, 3), np.uint8)))
-
-    def encode(_: bytes) -> EncodeReply:
-        time.sleep(STEP_S)
-        return EncodeReply(latents=WireArray.of(np.zeros((2, 4), np.float32)))
-
-    def paths(_: bytes) -> EncodeReply:
-        release.wait(8)  # a planner hang
-        raise RuntimeError("hung")
-
-    servers = []
-    for service, operation, handler in [
-        ("sim", "render", render),
-        ("encoder", "encode", encode),
-        ("planner", "paths", paths),
-    ]:
-        server = Server(session, service, f"{service}-stub")
-        server.serve(service_key(service, "box_stacking", operation), handler)
-        servers.append(server)
-    time.sleep(0.3)
-    yield
-    release.set()
-    for server in servers:
-        server.close()
-    close_quietly(session)
 
 
 @pytest.fixture(scope="module")
