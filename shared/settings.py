@@ -36,6 +36,12 @@ class Settings(BaseSettings):
     max_executing: int = Field(4, ge=1, description="/execute requests in progress")
     max_queued: int = Field(256, ge=0, description="requests waiting for a slot; more: 503")
     queue_wait_s: float = Field(2.0, ge=0, description="longest wait for a slot; then 503")
+    api_key_hashes: str = Field(
+        "", description="sha256 digests of accepted REST API keys, comma-separated; '': off"
+    )
+    api_keys_file: Path | None = Field(
+        None, description="a file of sha256 digests of accepted REST API keys, one a line"
+    )
     host: str = "127.0.0.1"
     port: int = 8000
 

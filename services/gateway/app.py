@@ -24,6 +24,7 @@ from fastapi.routing import APIRoute
 from pydantic import ValidationError
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from services.gateway.auth import ApiKeys, load_digests
 from services.gateway.inputs import BodyError, clip, error_detail, parse_json
 from services.gateway.planning import Gateway, plan_query_error
 from services.gateway.schemas import (
@@ -401,4 +402,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             queue=settings.max_queued,
             wait_s=settings.queue_wait_s,
         )
+    digests = load_digests(settings.api_key_hashes, settings.api_keys_file)
+    if digests:  # opt-in; outermost, so that strangers take no slot and no body is read
+        app.add_middleware(ApiKeys, digests=digests)
     return app
