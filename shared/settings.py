@@ -42,6 +42,9 @@ class Settings(BaseSettings):
     api_keys_file: Path | None = Field(
         None, description="a file of sha256 digests of accepted REST API keys, one a line"
     )
+    require_api_keys: bool = Field(
+        False, description="refuse to start the gateway without API key digests (deployments)"
+    )
     host: str = "127.0.0.1"
     port: int = 8000
 

@@ -122,3 +122,11 @@ def test_dockerfile_installs_what_the_makefile_installs() -> None:
     assert pip_installs(runs) == [["pip"], [f"torch=={pinned('torch')}"], ["."]]
     # torch's CPU build: PyPI's linux wheel pulls CUDA.
     assert re.search(r'--index-url "?\$\{?TORCH_INDEX_URL\b.* torch==', dockerfile)
+
+
+def test_gateway_requires_api_keys_from_a_mounted_digest_file() -> None:
+    gateway = compose_services()["gateway"]
+    assert gateway["environment"]["LSR_REQUIRE_API_KEYS"] == "true"
+    assert gateway["environment"]["LSR_API_KEYS_FILE"] == "/run/secrets/lsr_api_keys"
+    secrets = YAML(typ="safe").load((ROOT / "docker-compose.yml").read_text())["secrets"]
+    assert (ROOT / secrets["lsr_api_keys"]["file"]).is_file()

@@ -403,6 +403,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             wait_s=settings.queue_wait_s,
         )
     digests = load_digests(settings.api_key_hashes, settings.api_keys_file)
+    if settings.require_api_keys and not digests:
+        raise ValueError(
+            "LSR_REQUIRE_API_KEYS is set, but LSR_API_KEY_HASHES and LSR_API_KEYS_FILE hold no "
+            "key digest (make one with: python -m services.gateway.auth new)"
+        )
     if digests:  # opt-in; outermost, so that strangers take no slot and no body is read
         app.add_middleware(ApiKeys, digests=digests)
     return app

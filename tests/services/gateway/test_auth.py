@@ -7,7 +7,9 @@ import logging
 import httpx
 import pytest
 
+from services.gateway.app import create_app
 from services.gateway.auth import digest, load_digests, main
+from shared.settings import Settings
 
 KEY = "k3y-from-env_0123456789"
 FILE_KEY = "another-key-from-the-file"
@@ -69,3 +71,9 @@ def test_new_prints_a_key_and_its_digest(capsys):
     key_line, digest_line = capsys.readouterr().out.splitlines()
     key = key_line.rsplit(" ", 1)[1]
     assert digest_line.endswith(f"sha256:{digest(key)}") and len(key) >= 40
+
+
+def test_a_deployment_that_requires_keys_refuses_to_start_without_any(router_endpoint):
+    with pytest.raises(ValueError, match="LSR_REQUIRE_API_KEYS"):
+        create_app(Settings(zenoh_connect=router_endpoint, require_api_keys=True))
+    assert create_app(Settings(require_api_keys=True, api_key_hashes=digest(KEY)))
