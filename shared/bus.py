@@ -21,6 +21,7 @@ import traceback
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Generic, TypeVar
 
 import zenoh
@@ -86,9 +87,14 @@ class BusConfig:
     mode: str = "client"
     listen: Sequence[str] = ()
     open_timeout_s: float | None = None  # None: keep retrying until a router answers
+    # A zenoh configuration file loaded first (LSR_ZENOH_CONFIG): credentials, TLS and, for
+    # the router, access control (`shared.zenoh_access`). The fields above are set on top.
+    config_file: Path | None = None
 
     def zenoh_config(self) -> zenoh.Config:
-        config = zenoh.Config()
+        config = (
+            zenoh.Config.from_file(str(self.config_file)) if self.config_file else zenoh.Config()
+        )
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("scouting/multicast/enabled", "false")
         if self.mode != "router":

@@ -20,6 +20,9 @@ class Settings(BaseSettings):
     zenoh_open_timeout_s: float | None = Field(
         None, description="give up joining after this long; unset: retry until a router is up"
     )
+    zenoh_config: Path | None = Field(
+        None, description="zenoh configuration file: credentials, TLS; the router's: access control"
+    )
     model_dir: Path = SHIPPED_MODEL
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
@@ -50,4 +53,8 @@ class Settings(BaseSettings):
 
     def bus(self) -> BusConfig:
         endpoints = [e.strip() for e in self.zenoh_connect.split(",") if e.strip()]
-        return BusConfig(connect=endpoints, open_timeout_s=self.zenoh_open_timeout_s)
+        return BusConfig(
+            connect=endpoints,
+            open_timeout_s=self.zenoh_open_timeout_s,
+            config_file=self.zenoh_config,
+        )
