@@ -24,6 +24,9 @@ class Settings(BaseSettings):
         None, description="zenoh configuration file: credentials, TLS; the router's: access control"
     )
     model_dir: Path = SHIPPED_MODEL
+    require_sealed_model: bool = Field(
+        False, description="refuse model parts without a MANIFEST.json (deployments)"
+    )
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
     tasks: list[str] = ["box_stacking"]

@@ -149,3 +149,8 @@ def test_every_process_joins_the_bus_with_its_own_generated_credentials(tmp_path
         assert env["LSR_ZENOH_CONFIG"] == f"/run/secrets/zenoh_{name}"
         assert f"zenoh_{name}" in services[name]["secrets"]
         assert files[f"zenoh_{name}"] == written[name].name  # the generator writes that name
+
+
+@pytest.mark.parametrize("name", MODEL_SERVICES)
+def test_model_services_refuse_an_unsealed_model(name: str) -> None:
+    assert compose_services()[name]["environment"]["LSR_REQUIRE_SEALED_MODEL"] == "true"
