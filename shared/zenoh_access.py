@@ -27,6 +27,7 @@ import argparse
 import json
 import re
 import secrets
+import subprocess
 import sys
 from pathlib import Path
 
@@ -112,24 +113,95 @@ def write_private(path: Path, text: str) -> None:
     path.write_text(text)
 
 
-def write_deployment(out: Path, robots: list[str], dictionary_at: str | None = None) -> dict:
+def make_tls(out: Path, hosts: list[str]) -> None:
+    """A private CA (ca.pem, ca.key) and the router's certificate for `hosts` (names or IPs),
+    made with the openssl command. Keep ca.key offline once the router's certificate exists."""
+    names = [f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}" for h in hosts]
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=out, check=True, capture_output=True)
+
+    openssl(
+        "req",
+        "-x509",
+        *ec,
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "3650",
+        "-subj",
+        "/CN=LSR zenoh CA",
+    )
+    openssl("req", *ec, "-keyout", "router.key", "-out", "router.csr", "-subj", f"/CN={hosts[0]}")
+    (out / "router.ext").write_text(
+        f"subjectAltName={','.join(names)}\nbasicConstraints=CA:FALSE\n"
+        "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n"
+    )
+    openssl(
+        "x509",
+        "-req",
+        "-in",
+        "router.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "router.pem",
+        "-days",
+        "825",
+        "-extfile",
+        "router.ext",
+    )
+    for name in ("ca.key", "router.key"):
+        (out / name).chmod(0o600)
+    for name in ("router.csr", "router.ext", "ca.srl"):
+        (out / name).unlink(missing_ok=True)
+
+
+def write_deployment(
+    out: Path,
+    robots: list[str],
+    dictionary_at: str | None = None,
+    tls_hosts: list[str] | None = None,
+    files_at: str | None = None,
+) -> dict:
     """Write the router's and every role's configuration into `out`; returns {role: path}.
 
     `dictionary_at`: where the router will read `users.txt` (default: its path in `out`).
+    `tls_hosts`: the router's host names or addresses; then links are TLS (endpoints
+    `tls/HOST:7447`): a CA and the router's certificate are made, and every process checks the
+    router against `ca.pem`, read at `files_at` (default: `out`).
     """
     out.mkdir(parents=True, exist_ok=True)
     roles = [*SERVICE_ROLES, "gateway", "monitor", *(robot_user(r) for r in robots)]
     passwords = {role: secrets.token_urlsafe(24) for role in roles}
     write_private(out / "users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
     dictionary = dictionary_at or str((out / "users.txt").resolve())
-    router = {
+    folder = files_at or str(out.resolve())
+    router: dict = {
         "transport": {"auth": {"usrpwd": {"dictionary_file": dictionary}}},
         "access_control": access_control(robots),
     }
+    client_link: dict = {}
+    if tls_hosts:
+        make_tls(out, tls_hosts)
+        router["transport"]["link"] = {
+            "tls": {
+                "listen_private_key": f"{folder}/router.key",
+                "listen_certificate": f"{folder}/router.pem",
+            }
+        }
+        client_link = {"link": {"tls": {"root_ca_certificate": f"{folder}/ca.pem"}}}
     paths = {"router": out / "router.json5"}
     paths["router"].write_text(json.dumps(router, indent=2) + "\n")
     for role, password in passwords.items():
-        client = {"transport": {"auth": {"usrpwd": {"user": role, "password": password}}}}
+        auth = {"usrpwd": {"user": role, "password": password}}
+        client = {"transport": {"auth": auth, **client_link}}
         paths[role] = out / f"{role}.json5"
         write_private(paths[role], json.dumps(client, indent=2) + "\n")
     return paths
@@ -140,8 +212,15 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--robots", nargs="*", default=[], help="robot ids allowed on the bus")
     parser.add_argument("--dictionary-at", help="users.txt's path as the router sees it")
+    parser.add_argument(
+        "--tls-hosts", nargs="*", default=[], help="the router's names/addresses: TLS links"
+    )
+    parser.add_argument("--files-at", help="this folder's path as the processes see it")
     args = parser.parse_args(argv)
-    for role, path in write_deployment(args.out, args.robots, args.dictionary_at).items():
+    paths = write_deployment(
+        args.out, args.robots, args.dictionary_at, args.tls_hosts, args.files_at
+    )
+    for role, path in paths.items():
         print(f"{role}: {path}")
     return 0
 

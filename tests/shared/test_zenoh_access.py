@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time
 
 import numpy as np
@@ -125,3 +126,41 @@ def test_robots_use_the_api_and_read_only_their_own_plans(deployment):
     time.sleep(0.5)
     assert mine == [b"plan for arm-1"] and theirs == []
     queryable.undeclare()
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
+def test_tls_links_admit_only_processes_that_trust_the_deployments_ca(tmp_path):
+    paths = write_deployment(tmp_path, robots=[], tls_hosts=["localhost", "127.0.0.1"])
+    port = free_port()
+    router = open_session(
+        BusConfig(mode="router", listen=[f"tls/127.0.0.1:{port}"], config_file=paths["router"])
+    )
+    sessions = []
+    try:
+
+        def join(role: str, endpoint: str = f"tls/localhost:{port}") -> zenoh.Session:
+            config = BusConfig(connect=[endpoint], open_timeout_s=2, config_file=paths[role])
+            sessions.append(open_session(config))
+            return sessions[-1]
+
+        server = Server(join("planner"), "planner", "real")
+        server.serve(service_key("planner", "t", "paths"), answer_as("real"))
+        gateway = join("gateway")
+        time.sleep(0.3)
+        z = DecodeRequest(task="t", latents=WireArray.of(np.zeros((1, 2), np.float32)))
+        reply = call(gateway, "planner", "t", "paths", z, DecodeReply, 2.0).result()
+        assert chr(reply.images.numpy()[0, 0, 0, 0]) == "r"  # served over TLS
+        server.close()
+        untrusting = json.loads(paths["monitor"].read_text())
+        del untrusting["transport"]["link"]  # right password, but no CA to check the router by
+        no_ca = tmp_path / "no-ca.json5"
+        no_ca.write_text(json.dumps(untrusting))
+        with pytest.raises(ConnectionError):
+            open_session(
+                BusConfig(connect=[f"tls/localhost:{port}"], open_timeout_s=1, config_file=no_ca)
+            )
+        with pytest.raises(ConnectionError):  # plain TCP: nothing listens
+            join("monitor", f"tcp/127.0.0.1:{port}")
+    finally:
+        for session in [*sessions, router]:
+            close_quietly(session)
