@@ -91,7 +91,9 @@ def one_round(stack: Stack, http: httpx.Client, args: argparse.Namespace, index:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--service", default="planner", choices=["encoder", "planner", "apn", "sim"])
+    parser.add_argument(
+        "--service", default="planner", choices=["encoder", "planner", "apn", "sim"]
+    )
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--requests", type=int, default=80)
     parser.add_argument("--concurrency", type=int, default=8)
