@@ -16,11 +16,12 @@ import zenoh
 
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
 from shared.bus import Operation, Server, close_quietly, new_instance_id, open_session, service_key
-from shared.checkpoint import weights_file
+from shared.checkpoint import MANIFEST, CheckpointError, verify, weights_file
 from shared.messages import InfoReply
 from shared.settings import Settings
 
 log = logging.getLogger(__name__)
+MODEL_PARTS = ("vae", "roadmap", "apn")  # what the services load
 
 
 @dataclass(frozen=True)
@@ -34,8 +35,22 @@ class ModelInfo:
     latent_dim: int
 
     @classmethod
-    def read(cls, directory: Path | str) -> ModelInfo:
+    def read(cls, directory: Path | str, require_sealed: bool = False) -> ModelInfo:
+        """The model's identity, after checking each part against its manifest: a part that
+        was changed or half-written since it was sealed is refused, naming the file."""
         directory = Path(directory)
+        unsealed = [
+            part
+            for part in MODEL_PARTS
+            if (directory / part).is_dir() and not verify(directory / part)
+        ]
+        if unsealed and require_sealed:
+            raise CheckpointError(
+                f"{directory}: {', '.join(unsealed)} not sealed (no {MANIFEST}); seal with "
+                "python -m shared.checkpoint seal DIR FILE..."
+            )
+        if unsealed:
+            log.warning("%s: %s not sealed: served unverified", directory, ", ".join(unsealed))
         config = read_vae_config(directory / "vae")
         digest = hashlib.sha256(weights_file(directory / "vae", WEIGHTS).read_bytes())
         return cls(
@@ -66,7 +81,7 @@ def run_service(service: str, setup: Setup, settings: Settings) -> int:
 
     torch.set_num_threads(settings.torch_threads)
     instance = settings.instance or new_instance_id()
-    model = ModelInfo.read(settings.model_dir)
+    model = ModelInfo.read(settings.model_dir, settings.require_sealed_model)
     session = open_session(settings.bus())
     context = ServiceContext(service, instance, model, session, settings)
     handlers = setup(context)

@@ -31,8 +31,12 @@ def serve_gateway(settings: Settings) -> int:
 
 
 def serve_router(listen: list[str]) -> int:
-    """A zenoh router as a Python session: what zenohd does, for machines without it."""
-    session = zenoh.open(BusConfig(mode="router", listen=listen).zenoh_config())
+    """A zenoh router as a Python session: what zenohd does, for machines without it.
+
+    It loads LSR_ZENOH_CONFIG like every process: for the router, the access-control rules and
+    the credentials dictionary (`shared.zenoh_access`)."""
+    config = BusConfig(mode="router", listen=listen, config_file=Settings().zenoh_config)
+    session = zenoh.open(config.zenoh_config())
     print(f"zenoh router listening on {', '.join(listen)}", flush=True)
     wait_for_stop_signal()
     close_quietly(session)

@@ -32,6 +32,9 @@ class StackConfig:
     model_dir: Path = SHIPPED_MODEL
     log_dir: Path | None = None  # None: children write to this terminal
     env: dict[str, str] = field(default_factory=dict)
+    # Files of `shared.zenoh_access.write_deployment`: each child gets its role's file as
+    # LSR_ZENOH_CONFIG (the router: router.json5). None: an open bus, for loopback development.
+    zenoh_access: Path | None = None
 
     @property
     def endpoint(self) -> str:
@@ -56,7 +59,7 @@ class Stack:
         self.processes: dict[str, subprocess.Popen] = {}
         self._logs: list[IO] = []
 
-    def _spawn(self, name: str, args: list[str]) -> subprocess.Popen:
+    def _spawn(self, name: str, args: list[str], role: str) -> subprocess.Popen:
         if name in self.processes and self.processes[name].poll() is None:
             raise RuntimeError(f"{name} is already running")
         env = {
@@ -66,6 +69,8 @@ class Stack:
             "PYTHONUNBUFFERED": "1",
             **self.config.env,
         }
+        if self.config.zenoh_access is not None:
+            env["LSR_ZENOH_CONFIG"] = str(self.config.zenoh_access / f"{role}.json5")
         out: IO | None = None
         if self.config.log_dir is not None:
             self.config.log_dir.mkdir(parents=True, exist_ok=True)
@@ -83,14 +88,15 @@ class Stack:
         return process
 
     def start_router(self) -> None:
-        self._spawn("router", ["router", "--listen", f"tcp/127.0.0.1:{self.config.zenoh_port}"])
+        listen = ["router", "--listen", f"tcp/127.0.0.1:{self.config.zenoh_port}"]
+        self._spawn("router", listen, "router")
 
     def start_service(self, service: str, name: str | None = None) -> subprocess.Popen:
-        return self._spawn(name or service, ["serve", service])
+        return self._spawn(name or service, ["serve", service], service)
 
     def start_gateway(self) -> None:
         args = ["serve", "gateway", "--host", self.config.host, "--port", str(self.config.port)]
-        self._spawn("gateway", args)
+        self._spawn("gateway", args, "gateway")
 
     def start(self) -> None:
         self.start_router()

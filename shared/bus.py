@@ -9,6 +9,7 @@ Key layout (documented in docs/services.md):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -20,6 +21,7 @@ import traceback
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Generic, TypeVar
 
 import zenoh
@@ -85,9 +87,14 @@ class BusConfig:
     mode: str = "client"
     listen: Sequence[str] = ()
     open_timeout_s: float | None = None  # None: keep retrying until a router answers
+    # A zenoh configuration file loaded first (LSR_ZENOH_CONFIG): credentials, TLS and, for
+    # the router, access control (`shared.zenoh_access`). The fields above are set on top.
+    config_file: Path | None = None
 
     def zenoh_config(self) -> zenoh.Config:
-        config = zenoh.Config()
+        config = (
+            zenoh.Config.from_file(str(self.config_file)) if self.config_file else zenoh.Config()
+        )
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("scouting/multicast/enabled", "false")
         if self.mode != "router":
@@ -190,9 +197,10 @@ class PendingCall:
 
     The query goes to one instance: the next live one by `replicas`, or, before any is known, to
     the shared key (where every instance is a complete queryable, so zenoh picks one). A query
-    that nobody serves ends at once; it is sent again, to another instance, while the deadline
-    allows. A query that is served but not answered in time is not repeated: the work would only
-    pile up on a slow instance.
+    that ends unanswered before its deadline (nobody serves it, or the instance that held it
+    died) is sent again, to another live instance, for up to UNSERVED_GRACE_S. A query that is
+    still held when the deadline comes is not repeated: the work would only pile up on a slow
+    instance.
     """
 
     session: zenoh.Session
@@ -237,25 +245,29 @@ class PendingCall:
     def result(self) -> BaseModel:
         unserved_since: float | None = None
         while True:
-            started = time.monotonic()
+            timed_out = False
             for reply in self.replies:  # type: ignore[attr-defined]
                 if reply.ok is not None:
                     self.round_trip_ms = (time.perf_counter() - self.sent_at) * 1e3
                     self.served = _meta(reply.ok.attachment)
                     return _decode(self.service, reply.ok.payload.to_bytes(), self.reply_type)
                 if reply.err.encoding != MSGPACK:  # zenoh's own "Timeout": no answer came
+                    timed_out = True
                     continue
                 error: ErrorReply = _decode(self.service, reply.err.payload.to_bytes(), ErrorReply)
                 if error.code == "unavailable":  # a service this one depends on is down
                     raise ServiceUnavailable(error.field or self.service, error.message)
                 raise RemoteError(self.service, error)
             now = time.monotonic()
-            if now - started >= 0.05:  # served, but silent until the deadline
+            if timed_out or now >= self.deadline:  # served, but silent until the deadline
                 raise ServiceUnavailable(self.service, f"no reply in time on {self.key}")
+            # Ended unanswered before the deadline: nobody served the query, or the instance
+            # that had it is gone (killed, or stalled and then dead) before its token. The work
+            # was lost with it, so sending it to another instance repeats nothing.
             if self.instance is not None and self.replicas is not None:
-                self.replicas.forget(self.service, self.instance)  # gone before its token
+                self.replicas.forget(self.service, self.instance)
             unserved_since = unserved_since or now
-            if now - unserved_since > UNSERVED_GRACE_S or now > self.deadline:
+            if now - unserved_since > UNSERVED_GRACE_S:
                 raise ServiceUnavailable(self.service, f"no instance serves {self.key}")
             time.sleep(0.02)
             self._send()
@@ -403,7 +415,8 @@ class Server:
                 self._answer(batch, work)
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("%s could not answer a query", self.service)
-            del batch  # a query is finished when dropped: callers waiting on ALL see it at once
+            finally:
+                finish(batch)
 
     def _next_batch(self, pending: Pending, max_batch: int) -> list[zenoh.Query] | None:
         """The oldest query and those queued behind it, expired ones dropped; None: stop."""
@@ -423,6 +436,7 @@ class Server:
             if time.monotonic() - arrived <= budget_s(query):
                 live.append(query)
                 continue
+            finish([query])  # unanswered: the caller has stopped waiting
             with self._expired_lock:
                 self.expired += 1
                 expired = self.expired
@@ -485,6 +499,17 @@ class Server:
         for pending in self._queues:
             pending.put(None)
         self.token.undeclare()
+
+
+def finish(queries: Sequence[zenoh.Query]) -> None:
+    """Finalize queries now, so that their callers see the end of the replies at once.
+
+    Left to the garbage collector, a query lives as long as anything refers to it (a traceback
+    in a reference cycle, say), and its caller waits until its own timeout.
+    """
+    for query in queries:
+        with contextlib.suppress(Exception):  # already dropped
+            query.drop()
 
 
 def _ms_since(started: float) -> float:

@@ -8,6 +8,7 @@ Like the ActionPlanner, it decodes each roadmap node once: the images are kept b
 from __future__ import annotations
 
 import itertools
+import time
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -57,7 +58,7 @@ class PlanningClient:
         operation: str,
         request: BaseModel,
         reply_type: type[M],
-        deadline_s: float | None = None,
+        deadline: float,
     ) -> PendingCall:
         return call(
             self.session,
@@ -66,22 +67,35 @@ class PlanningClient:
             operation,
             request,
             reply_type,
-            deadline_s=deadline_s or self.deadline_s,
+            deadline_s=deadline - time.monotonic(),
             replicas=self.replicas,
         )
 
-    def render(self, states: list[Any], seed: int = 0) -> np.ndarray:
+    def deadline(self) -> float:
+        """The default deadline of a request begun now (`time.monotonic()` seconds)."""
+        return time.monotonic() + self.deadline_s
+
+    def render(self, states: list[Any], seed: int = 0, deadline: float | None = None) -> np.ndarray:
         request = RenderRequest(
             task=self.task_name, states=[self.task.state_to_json(s) for s in states], seed=seed
         )
-        reply: RenderReply = self._call("sim", "render", request, RenderReply).result()
+        rendering = self._call("sim", "render", request, RenderReply, deadline or self.deadline())
+        reply: RenderReply = rendering.result()
         return reply.images.numpy()
 
     def plan_with_reason(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, include_images: bool = True
+        self,
+        start: np.ndarray,
+        goal: np.ndarray,
+        max_plans: int = 8,
+        include_images: bool = True,
+        deadline: float | None = None,
     ) -> PlanOutcome:
+        """Plans from start to goal; every call shares one deadline (`time.monotonic()`), so a
+        hang anywhere costs the caller that budget once, not once per call after slow ones."""
+        deadline = deadline or self.deadline()
         images_in = EncodeRequest(task=self.task_name, images=WireArray.of(np.stack([start, goal])))
-        encoding = self._call("encoder", "encode", images_in, EncodeReply)
+        encoding = self._call("encoder", "encode", images_in, EncodeReply, deadline)
         z_start, z_goal = encoding.result().latents.numpy()
         search = PathsRequest(
             task=self.task_name,
@@ -89,7 +103,7 @@ class PlanningClient:
             z_goal=WireArray.of(z_goal),
             max_plans=max_plans,
         )
-        searching = self._call("planner", "paths", search, PathsReply)
+        searching = self._call("planner", "paths", search, PathsReply, deadline)
         found: PathsReply = searching.result()
         calls = [encoding, searching]
         if not found.paths:
@@ -104,7 +118,7 @@ class PlanningClient:
                 z_from=WireArray.of(np.stack([latents[a] for a, _ in steps])),
                 z_to=WireArray.of(np.stack([latents[b] for _, b in steps])),
             )
-            proposing = self._call("apn", "propose", propose, ProposeReply)
+            proposing = self._call("apn", "propose", propose, ProposeReply, deadline)
             calls.append(proposing)
         images: dict[int, np.ndarray] = {}
         missing: list[tuple[int, tuple[str, bytes]]] = []
@@ -121,7 +135,7 @@ class PlanningClient:
                 task=self.task_name,
                 latents=WireArray.of(np.stack([latents[node] for node, _ in missing])),
             )
-            decoding = self._call("encoder", "decode", decode, DecodeReply)
+            decoding = self._call("encoder", "decode", decode, DecodeReply, deadline)
             calls.append(decoding)
         proposed: dict[tuple[int, int], tuple[Any, float]] = {}
         if proposing is not None:
@@ -163,7 +177,8 @@ class PlanningClient:
 
     def run(self, request: RunRequest, deadline_s: float) -> RunReply:
         """A closed-loop episode in a sim instance; it plans through this same network."""
-        return self._call("sim", "run", request, RunReply, deadline_s=deadline_s).result()
+        deadline = time.monotonic() + deadline_s
+        return self._call("sim", "run", request, RunReply, deadline).result()
 
 
 def timings(calls: list[PendingCall]) -> list[CallTiming]:

@@ -7,7 +7,7 @@ shape and dtype, so a 64x64 image costs 12 KiB plus a few bytes of header, not a
 from __future__ import annotations
 
 import math
-from typing import Any, Literal, TypeVar, get_args
+from typing import Annotated, Any, Literal, TypeVar, get_args
 
 import msgpack
 import numpy as np
@@ -16,10 +16,19 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 SCHEMA_VERSION = 1
 MAX_PLANS = 64
 WireDtype = Literal["|u1", "<f4", "<i8"]  # uint8 images, float32 latents, int64 ids
+# Far beyond any real array, and small enough that numpy can always take the shape: a shape of
+# huge dimensions and a zero one holds no bytes, so the byte count alone would let it through.
+MAX_DIM = 2**31 - 1
+MAX_ELEMENTS = 2**31  # the product of the nonzero dimensions
 
 
 class MessageError(ValueError):
-    """Bytes that are not a valid message of the expected kind; the message names the field."""
+    """Bytes that are not a valid message of the expected kind; the message names the field,
+    and so does `field` (dotted) where one is at fault."""
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
 
 
 class WireArray(BaseModel):
@@ -27,14 +36,14 @@ class WireArray(BaseModel):
 
     model_config = ConfigDict(frozen=True)
 
-    shape: list[int] = Field(max_length=8)
+    shape: list[Annotated[int, Field(ge=0, le=MAX_DIM)]] = Field(max_length=8)
     dtype: WireDtype
     data: bytes
 
     @model_validator(mode="after")
     def _size_matches(self) -> WireArray:
-        if any(d < 0 for d in self.shape):
-            raise ValueError(f"negative dimension in shape {self.shape}")
+        if math.prod(d for d in self.shape if d) > MAX_ELEMENTS:
+            raise ValueError(f"shape {self.shape} has over {MAX_ELEMENTS} elements")
         expected = math.prod(self.shape) * np.dtype(self.dtype).itemsize  # exact, no overflow
         if len(self.data) != expected:
             raise ValueError(f"{len(self.data)} bytes for shape {self.shape} of {self.dtype}")
@@ -174,11 +183,19 @@ def pack(message: BaseModel) -> bytes:
 
 
 def unpack(payload: bytes, kind: type[M]) -> M:
-    """Bytes -> a `kind` message; MessageError names the version or field that is wrong."""
+    """Bytes -> a `kind` message; MessageError names the version or field that is wrong.
+
+    Errors are raised outside the except blocks: an exception raised inside one keeps the one it
+    replaces, whose traceback holds the frames of this call and its callers (a query among them)
+    in a cycle until the garbage collector runs.
+    """
+    problem = None
     try:
         obj = msgpack.unpackb(payload, raw=False)
     except Exception as exc:
-        raise MessageError(f"not msgpack: {exc}") from None
+        problem = f"not msgpack: {exc}"
+    if problem is not None:
+        raise MessageError(problem)
     if not isinstance(obj, dict):
         raise MessageError(f"{kind.__name__} must be a map, got {type(obj).__name__}")
     if obj.get("v") != SCHEMA_VERSION:
@@ -186,6 +203,6 @@ def unpack(payload: bytes, kind: type[M]) -> M:
     try:
         return kind.model_validate(obj)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"])
-        raise MessageError(f"{kind.__name__}.{field}: {err['msg']}") from None
+        error = exc.errors()[0]
+    field = ".".join(str(p) for p in error["loc"])
+    raise MessageError(f"{kind.__name__}.{field}: {error['msg']}", field=field or None)

@@ -20,16 +20,44 @@ class Settings(BaseSettings):
     zenoh_open_timeout_s: float | None = Field(
         None, description="give up joining after this long; unset: retry until a router is up"
     )
+    zenoh_config: Path | None = Field(
+        None, description="zenoh configuration file: credentials, TLS; the router's: access control"
+    )
     model_dir: Path = SHIPPED_MODEL
+    require_sealed_model: bool = Field(
+        False, description="refuse model parts without a MANIFEST.json (deployments)"
+    )
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
     tasks: list[str] = ["box_stacking"]
-    deadline_s: float = Field(4.5, gt=0, description="per service call, retries included")
+    deadline_s: float = Field(
+        4.0, gt=0, description="per request: all its service calls, retries included"
+    )
     execute_step_s: float = Field(3.0, gt=0, description="/execute allowance per step")
     max_body_bytes: int = Field(4 * 1024 * 1024, gt=0)
+    body_timeout_s: float = Field(
+        10.0, gt=0, description="a request body must arrive within this (408 after)"
+    )
+    max_in_flight: int = Field(32, ge=1, description="/plan and /render requests in progress")
+    max_executing: int = Field(4, ge=1, description="/execute requests in progress")
+    max_queued: int = Field(256, ge=0, description="requests waiting for a slot; more: 503")
+    queue_wait_s: float = Field(2.0, ge=0, description="longest wait for a slot; then 503")
+    api_key_hashes: str = Field(
+        "", description="sha256 digests of accepted REST API keys, comma-separated; '': off"
+    )
+    api_keys_file: Path | None = Field(
+        None, description="a file of sha256 digests of accepted REST API keys, one a line"
+    )
+    require_api_keys: bool = Field(
+        False, description="refuse to start the gateway without API key digests (deployments)"
+    )
     host: str = "127.0.0.1"
     port: int = 8000
 
     def bus(self) -> BusConfig:
         endpoints = [e.strip() for e in self.zenoh_connect.split(",") if e.strip()]
-        return BusConfig(connect=endpoints, open_timeout_s=self.zenoh_open_timeout_s)
+        return BusConfig(
+            connect=endpoints,
+            open_timeout_s=self.zenoh_open_timeout_s,
+            config_file=self.zenoh_config,
+        )

@@ -19,11 +19,23 @@ class FieldError(ValueError):
 
 
 def parse_state(task: Task, field: str, obj: Any) -> Any:
-    """The task's state from JSON, or a FieldError naming `field`."""
+    """The task's state from JSON, or a FieldError naming `field` (or its unknown key).
+
+    Keys the task's own JSON of the state lacks are refused: a misspelt key would otherwise be
+    ignored silently.
+    """
     try:
-        return task.parse_state(obj)
+        state = task.parse_state(obj)
     except InvalidStateError as exc:
         raise FieldError(field, str(exc)) from None
+    if isinstance(obj, dict):
+        known = task.state_to_json(state)
+        unknown = [key for key in obj if key not in known]
+        if unknown:
+            raise FieldError(
+                f"{field}.{unknown[0]}", f"unknown key {unknown[0]!r}; a state has {sorted(known)}"
+            )
+    return state
 
 
 def check_images(

@@ -12,6 +12,8 @@ from typing import Any
 import pytest
 from ruamel.yaml import YAML
 
+from shared.zenoh_access import write_deployment
+
 ROOT = Path(__file__).resolve().parents[1]
 MODEL_SERVICES = ("encoder", "planner", "apn", "sim")
 SERVICES = (*MODEL_SERVICES, "gateway")
@@ -122,3 +124,33 @@ def test_dockerfile_installs_what_the_makefile_installs() -> None:
     assert pip_installs(runs) == [["pip"], [f"torch=={pinned('torch')}"], ["."]]
     # torch's CPU build: PyPI's linux wheel pulls CUDA.
     assert re.search(r'--index-url "?\$\{?TORCH_INDEX_URL\b.* torch==', dockerfile)
+
+
+def test_gateway_requires_api_keys_from_a_mounted_digest_file() -> None:
+    gateway = compose_services()["gateway"]
+    assert gateway["environment"]["LSR_REQUIRE_API_KEYS"] == "true"
+    assert gateway["environment"]["LSR_API_KEYS_FILE"] == "/run/secrets/lsr_api_keys"
+    secrets = YAML(typ="safe").load((ROOT / "docker-compose.yml").read_text())["secrets"]
+    assert (ROOT / secrets["lsr_api_keys"]["file"]).is_file()
+
+
+def test_every_process_joins_the_bus_with_its_own_generated_credentials(tmp_path: Path) -> None:
+    compose = YAML(typ="safe").load((ROOT / "docker-compose.yml").read_text())
+    services, secrets = compose["services"], compose["secrets"]
+    router = services["zenohd"]
+    config = router["command"][router["command"].index("--config") + 1]
+    assert config == "/run/secrets/zenoh_router" and set(router["secrets"]) >= {"zenoh_router"}
+    written = write_deployment(tmp_path, robots=[], dictionary_at="/run/secrets/zenoh_users")
+    assert "/run/secrets/zenoh_users" in written["router"].read_text()
+    files = {name: Path(secret["file"]).name for name, secret in secrets.items()}
+    assert files["zenoh_router"] == "router.json5" and files["zenoh_users"] == "users.txt"
+    for name in SERVICES:
+        env = services[name]["environment"]
+        assert env["LSR_ZENOH_CONFIG"] == f"/run/secrets/zenoh_{name}"
+        assert f"zenoh_{name}" in services[name]["secrets"]
+        assert files[f"zenoh_{name}"] == written[name].name  # the generator writes that name
+
+
+@pytest.mark.parametrize("name", MODEL_SERVICES)
+def test_model_services_refuse_an_unsealed_model(name: str) -> None:
+    assert compose_services()[name]["environment"]["LSR_REQUIRE_SEALED_MODEL"] == "true"

@@ -11,7 +11,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from services.encoder.model import VAE, VAEConfig, to_tensor, to_uint8
-from shared.checkpoint import read_config, weights_file
+from shared.checkpoint import read_config, replace_atomically, seal, weights_file
 
 FORMAT = "lsr-vae"
 VERSION = 1
@@ -23,9 +23,11 @@ def save_vae(model: VAE, directory: Path | str, meta: dict[str, Any]) -> None:
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    save_file(tensors, directory / WEIGHTS)
+    replace_atomically(directory / WEIGHTS, lambda tmp: save_file(tensors, tmp))
     config = {"format": FORMAT, "version": VERSION, "model": model.config.to_dict(), **meta}
-    (directory / CONFIG).write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
+    text = json.dumps(config, indent=2, sort_keys=True) + "\n"
+    replace_atomically(directory / CONFIG, lambda tmp: tmp.write_text(text))
+    seal(directory, [WEIGHTS, CONFIG])
 
 
 def read_vae_config(directory: Path | str) -> dict[str, Any]:

@@ -6,10 +6,10 @@ never on the event loop.
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
@@ -17,10 +17,13 @@ from typing import Any
 import anyio
 import zenoh
 from fastapi import FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from services.gateway.auth import ApiKeys, load_digests
+from services.gateway.inputs import BodyError, clip, error_detail, parse_json
+from services.gateway.middleware import ARRIVED, Admission, BodyLimit, GuardedRoute
 from services.gateway.planning import Gateway, plan_query_error
 from services.gateway.schemas import (
     ExecuteRequest,
@@ -38,6 +41,7 @@ from shared.bus import (
     ServiceUnavailable,
     alive_key,
     close_quietly,
+    finish,
     new_instance_id,
     open_session,
 )
@@ -50,71 +54,58 @@ API_PLAN_WORKERS = 4
 
 
 def error_body(exc: Exception) -> tuple[int, Any] | None:
-    """The HTTP status and `detail` for the errors the gateway expects; None for a bug."""
+    """The HTTP status and `detail` for the errors the gateway expects; None for a bug.
+
+    Details name the field and echo at most a short excerpt of the input (`inputs.error_detail`).
+    """
+    if isinstance(exc, BodyError):
+        return exc.status, exc.detail()
     if isinstance(exc, FieldError):
         loc = ["body", *exc.field.split(".")]
-        return 422, [{"loc": loc, "msg": str(exc), "type": "value_error"}]
+        return 422, error_detail([{"loc": loc, "msg": str(exc), "type": "value_error"}])
     if isinstance(exc, ValidationError):
-        errors = json.loads(exc.json(include_url=False, include_context=False))
-        return 422, [{**e, "loc": ["body", *e["loc"]]} for e in errors]
+        return 422, error_detail(exc.errors(include_url=False), prefix=["body"])
+    if isinstance(exc, RequestValidationError):  # FastAPI's: locations start with "body"
+        return 422, error_detail(exc.errors())
     if isinstance(exc, ServiceUnavailable):
-        return 503, str(exc)
+        return 503, clip(str(exc))
     if isinstance(exc, RemoteError):
-        return (422 if exc.error.code == "bad_request" else 502), str(exc)
+        return (422 if exc.error.code == "bad_request" else 502), clip(str(exc))
     return None
 
 
-class BodyLimit:
-    """Answers 413 to bodies over `limit` bytes, declared or streamed, before anyone reads them."""
+def serve_plan_queries(
+    session: zenoh.Session, gateway: Gateway, settings: Settings
+) -> Callable[[], None]:
+    """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out.
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
-        self.app = app
-        self.limit = limit
+    Like REST, it sheds load: a query arriving while `settings.max_queued` wait gets 503 at
+    once, and one still queued at its deadline (LSR_DEADLINE_S from arrival) gets 503 unworked.
+    """
+    pending: queue.Queue[tuple[float, zenoh.Query] | None] = queue.Queue()
 
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            return await self._too_large(send)
-        received = 0
-        refused = False
+    def arrived(query: zenoh.Query) -> None:
+        if pending.qsize() >= settings.max_queued:
+            overloaded(query, f"{pending.qsize()} queries waiting")
+            return
+        pending.put((time.monotonic(), query))
 
-        async def limited() -> Message:
-            nonlocal received, refused
-            message = await receive()
-            received += len(message.get("body", b""))
-            if received > self.limit and not refused:
-                refused = True
-                await self._too_large(send)
-                return {"type": "http.disconnect"}  # the app stops reading here
-            return message
-
-        async def unless_refused(message: Message) -> None:
-            if not refused:  # whatever the app answers after a refusal is dropped
-                await send(message)
-
-        await self.app(scope, limited, unless_refused)
-
-    async def _too_large(self, send: Send) -> None:
-        body = json.dumps({"detail": f"request body over {self.limit} bytes"}).encode()
-        headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
-        await send({"type": "http.response.start", "status": 413, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
-
-
-def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[], None]:
-    """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out."""
-    pending: queue.Queue[zenoh.Query | None] = queue.Queue()
-    queryable = session.declare_queryable(API_PLAN_KEY, pending.put, complete=True)
+    queryable = session.declare_queryable(API_PLAN_KEY, arrived, complete=True)
 
     def work() -> None:
-        while (query := pending.get()) is not None:
+        while (item := pending.get()) is not None:
+            came, query = item
+            deadline = came + settings.deadline_s
             try:
-                answer_plan_query(query, gateway)
+                if time.monotonic() >= deadline:
+                    overloaded(query, "waited past its deadline")
+                else:
+                    answer_plan_query(query, gateway, settings.max_body_bytes, deadline)
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("could not answer %s", API_PLAN_KEY)
-            del query  # dropping a query finishes it
+            finally:
+                finish([query])
+            del item, query
 
     for i in range(API_PLAN_WORKERS):
         threading.Thread(target=work, name=f"api-plan#{i}", daemon=True).start()
@@ -127,15 +118,27 @@ def serve_plan_queries(session: zenoh.Session, gateway: Gateway) -> Callable[[],
     return stop
 
 
-def answer_plan_query(query: zenoh.Query, gateway: Gateway) -> None:
+def overloaded(query: zenoh.Query, why: str) -> None:
+    try:
+        query.reply_err(plan_query_error(503, f"gateway overloaded: {why}"), encoding=JSON)
+    finally:
+        finish([query])
+
+
+def answer_plan_query(
+    query: zenoh.Query, gateway: Gateway, max_bytes: int, deadline: float | None = None
+) -> None:
+    """Answer one `lsr/api/plan` query; every query gets a reply, an error one at worst."""
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
-        response, _ = gateway.plan(PlanRequest.model_validate_json(payload))
+        if len(payload) > max_bytes:
+            raise BodyError(413, ["body"], f"payload over {max_bytes} bytes", "too_large")
+        response, _ = gateway.plan(PlanRequest.model_validate(parse_json(payload)), deadline)
     except Exception as exc:
         known = error_body(exc)
         if known is None:
             log.exception("lsr/api/plan failed")
-            known = (500, f"{type(exc).__name__}: {exc}")
+            known = (500, clip(f"{type(exc).__name__}: {exc}"))
         query.reply_err(plan_query_error(*known), encoding=JSON)
         return
     query.reply(query.key_expr, response.model_dump_json(), encoding=JSON)
@@ -152,7 +155,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             alive_key("gateway", settings.instance or new_instance_id())
         )
         app.state.gateway = Gateway(session, settings)
-        stop_queries = serve_plan_queries(session, app.state.gateway)
+        stop_queries = serve_plan_queries(session, app.state.gateway, settings)
         yield
         stop_queries()
         token.undeclare()
@@ -170,8 +173,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         headers = {"Retry-After": "1"} if status == 503 else None
         return JSONResponse({"detail": detail}, status_code=status, headers=headers)
 
-    for kind in (FieldError, ServiceUnavailable, RemoteError):
+    for kind in (FieldError, ServiceUnavailable, RemoteError, RequestValidationError):
         app.add_exception_handler(kind, known_error)
+    app.router.route_class = GuardedRoute
 
     def gateway(request: Request) -> Gateway:
         return request.app.state.gateway
@@ -187,15 +191,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise HTTPException(404, f"unknown task {task!r}; known tasks are {task_names()}")
         return get_task(task).info()
 
+    def deadline(request: Request) -> float:
+        """LSR_DEADLINE_S from the request's arrival: any wait for admission counts."""
+        return request.scope.get(ARRIVED, time.monotonic()) + settings.deadline_s
+
     @app.post("/render")
     def render(body: RenderRequest, request: Request) -> RenderResponse:
-        return gateway(request).render(body)
+        return gateway(request).render(body, deadline(request))
 
     @app.post("/plan", response_model=PlanResponse)
     def plan(body: PlanRequest, request: Request) -> Response:
         # Serialised by pydantic-core in one pass: plans carry many images, and FastAPI's own
         # re-validation of the returned model would cost more than the planning.
-        response, timing = gateway(request).plan(body)
+        response, timing = gateway(request).plan(body, deadline(request))
         headers = {"Server-Timing": timing}
         return Response(response.model_dump_json(), media_type="application/json", headers=headers)
 
@@ -203,5 +211,26 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:
         return gateway(request).execute(body)
 
-    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
+    # Outermost: a request waiting for admission is not read yet. /execute holds its worker
+    # for many seconds, so it has its own, smaller share.
+    for paths, limit in [
+        (frozenset({"/plan", "/render"}), settings.max_in_flight),
+        (frozenset({"/execute"}), settings.max_executing),
+    ]:
+        app.add_middleware(
+            Admission,
+            paths=paths,
+            limit=limit,
+            queue=settings.max_queued,
+            wait_s=settings.queue_wait_s,
+        )
+    digests = load_digests(settings.api_key_hashes, settings.api_keys_file)
+    if settings.require_api_keys and not digests:
+        raise ValueError(
+            "LSR_REQUIRE_API_KEYS is set, but LSR_API_KEY_HASHES and LSR_API_KEYS_FILE hold no "
+            "key digest (make one with: python -m services.gateway.auth new)"
+        )
+    if digests:  # opt-in; outermost, so that strangers take no slot and no body is read
+        app.add_middleware(ApiKeys, digests=digests)
     return app

@@ -70,11 +70,12 @@ class Gateway:
             self._clients[task] = PlanningClient(self.session, task, self.settings.deadline_s)
         return self._clients[task]
 
-    def image_size(self, task: str) -> int:
+    def image_size(self, task: str, deadline: float) -> int:
         """The model's image size, asked of the encoder and remembered for a few seconds."""
         cached = self._sizes.get(task)
         if cached is None or time.monotonic() - cached[0] > INFO_TTL_S:
-            cached = (time.monotonic(), encoder_image_size(self.session, task))
+            timeout_s = max(0.05, min(1.5, deadline - time.monotonic()))
+            cached = (time.monotonic(), encoder_image_size(self.session, task, timeout_s))
             self._sizes[task] = cached
         return cached[1]
 
@@ -109,29 +110,35 @@ class Gateway:
 
     # routes ---------------------------------------------------------------------------------
     def _images(
-        self, task: str, endpoints: dict[str, Endpoint], seed: int = 0
+        self, task: str, endpoints: dict[str, Endpoint], deadline: float
     ) -> dict[str, np.ndarray]:
         """Decode the image endpoints, render the state endpoints (in one sim call)."""
         logic = get_task(task)
         images, states = {}, {}
         for name, endpoint in endpoints.items():
             if endpoint.image is not None:  # the size is asked of the encoder only then
-                size = self.image_size(task)
+                size = self.image_size(task, deadline)
                 images[name] = decode_b64_image(f"{name}.image", endpoint.image, size)
             else:
                 states[name] = parse_state(logic, f"{name}.state", endpoint.state)
         if states:
-            rendered = self.client(task).render(list(states.values()), seed)
+            rendered = self.client(task).render(list(states.values()), 0, deadline)
             images.update(zip(states, rendered, strict=True))
         return images
 
-    def plan(self, request: PlanRequest) -> tuple[PlanResponse, str]:
-        """The plans, and where the time went as a Server-Timing header value."""
+    def plan(self, request: PlanRequest, deadline: float | None = None) -> tuple[PlanResponse, str]:
+        """The plans, and where the time went as a Server-Timing header value.
+
+        Every service call of the request shares one deadline (`time.monotonic()`; by default
+        LSR_DEADLINE_S from now), so that a hang anywhere costs the caller that budget once.
+        """
         started = time.perf_counter()
-        images = self._images(request.task, {"start": request.start, "goal": request.goal})
+        deadline = deadline or time.monotonic() + self.settings.deadline_s
+        endpoints = {"start": request.start, "goal": request.goal}
+        images = self._images(request.task, endpoints, deadline)
         client = self.client(request.task)
         outcome = client.plan_with_reason(
-            images["start"], images["goal"], request.max_plans, request.include_images
+            images["start"], images["goal"], request.max_plans, request.include_images, deadline
         )
         response = PlanResponse(
             plan_id=uuid.uuid4().hex,
@@ -153,9 +160,10 @@ class Gateway:
             )
         return response, server_timing(outcome.timings, (time.perf_counter() - started) * 1e3)
 
-    def render(self, request: RenderRequest) -> RenderResponse:
+    def render(self, request: RenderRequest, deadline: float | None = None) -> RenderResponse:
         state = parse_state(get_task(request.task), "state", request.state)
-        image = self.client(request.task).render([state], request.seed)[0]
+        deadline = deadline or time.monotonic() + self.settings.deadline_s
+        image = self.client(request.task).render([state], request.seed, deadline)[0]
         return RenderResponse(image=png_b64(image))
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:
@@ -165,7 +173,7 @@ class Gateway:
         if request.goal.state is not None:
             goal_state = logic.state_to_json(parse_state(logic, "goal.state", request.goal.state))
         else:
-            size = self.image_size(request.task)
+            size = self.image_size(request.task, time.monotonic() + self.settings.deadline_s)
             goal_image = WireArray.of(decode_b64_image("goal.image", request.goal.image, size))
         run = RunRequest(
             task=request.task,

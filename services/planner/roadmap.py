@@ -28,6 +28,8 @@ from scipy.sparse.csgraph import shortest_path
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from shared.checkpoint import replace_atomically, seal
+
 Metric = Literal["l1", "l2", "inf"]
 
 METRICS: tuple[Metric, ...] = ("l1", "l2", "inf")
@@ -717,7 +719,7 @@ class Roadmap:
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         arrays = {key: np.ascontiguousarray(getattr(self, key)) for key in _ARRAY_KEYS}
-        save_file(arrays, str(out / ARRAYS_NAME))
+        replace_atomically(out / ARRAYS_NAME, lambda tmp: save_file(arrays, str(tmp)))
         meta = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
@@ -727,7 +729,9 @@ class Roadmap:
             "sigma0": self.sigma0,
             "stats": self.stats,
         }
-        (out / JSON_NAME).write_text(json.dumps(meta, indent=2, allow_nan=False) + "\n")
+        text = json.dumps(meta, indent=2, allow_nan=False) + "\n"
+        replace_atomically(out / JSON_NAME, lambda tmp: tmp.write_text(text))
+        seal(out, [ARRAYS_NAME, JSON_NAME])  # labels.json (build's, after this) is not served
 
     @classmethod
     def load(cls, directory: str | Path) -> Roadmap:

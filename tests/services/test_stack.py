@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -16,12 +17,23 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from PIL import Image
 
 from services.stack import Stack, StackConfig, check_ports_free, free_port
-from shared.bus import API_PLAN_KEY, JSON, BusConfig, close_quietly, open_session
+from shared.bus import (
+    API_PLAN_KEY,
+    JSON,
+    BusConfig,
+    Server,
+    close_quietly,
+    open_session,
+    service_key,
+)
+from shared.messages import PathsReply, WireArray
 from shared.tasks import get_task
+from shared.zenoh_access import write_deployment
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
 TASK = get_task("box_stacking")
@@ -31,12 +43,26 @@ GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOA
 
 
 @pytest.fixture(scope="module")
-def stack(tmp_path_factory):
+def access(tmp_path_factory) -> Path:
+    """The bus runs under access control, as deployed: every process has its credentials."""
+    folder = tmp_path_factory.mktemp("zenoh-access")
+    write_deployment(folder, robots=["r2"])
+    return folder
+
+
+def as_role(access: Path, role: str) -> dict[str, str]:
+    """The environment of a process that joins the bus as `role`."""
+    return {**os.environ, "LSR_ZENOH_CONFIG": str(access / f"{role}.json5")}
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory, access):
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
         model_dir=MODEL,
         log_dir=tmp_path_factory.mktemp("stack-logs"),
+        zenoh_access=access,
     )
     with Stack(config) as running:
         running.start()
@@ -51,8 +77,11 @@ def http(stack):
 
 
 @pytest.fixture(scope="module")
-def bus(stack):
-    session = open_session(BusConfig(connect=[stack.config.endpoint], open_timeout_s=10))
+def bus(stack, access):
+    config = BusConfig(
+        connect=[stack.config.endpoint], open_timeout_s=10, config_file=access / "monitor.json5"
+    )
+    session = open_session(config)
     yield session
     close_quietly(session)
 
@@ -91,10 +120,11 @@ def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
     assert http.get("/docs").status_code == 200
 
 
-def test_ping_is_a_health_check_for_the_instances_of_this_host(stack):
+def test_ping_is_a_health_check_for_the_instances_of_this_host(stack, access):
     def ping(*args: str, endpoint: str = stack.config.endpoint) -> subprocess.CompletedProcess:
         command = [sys.executable, "-m", "services.cli", "ping", *args, "--connect", endpoint]
-        return subprocess.run(command, capture_output=True, text=True, timeout=60)
+        env = as_role(access, "planner")  # as in its container: the service's own credentials
+        return subprocess.run(command, capture_output=True, text=True, timeout=60, env=env)
 
     here = ping("planner", "--this-host")
     assert here.returncode == 0 and "planner" in here.stdout, here.stderr
@@ -247,7 +277,7 @@ def test_execute_reaches_the_goal(http):
     )
 
 
-def test_robot_client_reaches_its_goal(stack):
+def test_robot_client_reaches_its_goal(stack, access):
     result = subprocess.run(
         [
             sys.executable,
@@ -266,9 +296,50 @@ def test_robot_client_reaches_its_goal(stack):
         capture_output=True,
         text=True,
         timeout=120,
+        env=as_role(access, "robot-r2"),
     )
     assert result.returncode == 0, result.stdout + result.stderr
     assert "[r2] step 1:" in result.stdout and "reached the goal" in result.stdout
+
+
+def test_an_impostor_planner_and_strangers_are_refused_while_the_stack_serves(stack, http, access):
+    # A robot's credentials (or another service's) do not let a process serve plans.
+    impostors = []
+    for role in ("robot-r2", "apn"):
+        session = open_session(
+            BusConfig(
+                connect=[stack.config.endpoint],
+                open_timeout_s=10,
+                config_file=access / f"{role}.json5",
+            )
+        )
+        server = Server(session, "planner", f"impostor-{role}")
+        server.serve(service_key("planner", "box_stacking", "paths"), forged_paths)
+        impostors.append((session, server))
+    try:
+        time.sleep(0.5)
+        for _ in range(10):
+            reply = http.post("/plan", json={**GOOD, "include_images": False})
+            assert reply.status_code == 200, reply.text
+            assert_plans_lead_from(START, GOAL, reply.json(), images=False)  # the real planner's
+        planners = http.get("/health").json()["services"]["planner"]["instances"]
+        assert [i["instance"] for i in planners if "impostor" in i["instance"]] == []
+        with pytest.raises(ConnectionError):  # without credentials nobody joins at all
+            open_session(BusConfig(connect=[stack.config.endpoint], open_timeout_s=1))
+    finally:
+        for session, server in impostors:
+            server.close()
+            close_quietly(session)
+
+
+def forged_paths(_: bytes) -> PathsReply:
+    """What an impostor would answer: a path that a robot must never execute."""
+    return PathsReply(
+        paths=[[0, 1]],
+        node_ids=[0, 1],
+        node_latents=WireArray.of(np.zeros((2, 64), np.float32)),
+        model_id="forged",
+    )
 
 
 def plan_ok(http: httpx.Client) -> int:

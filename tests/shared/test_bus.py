@@ -1,12 +1,19 @@
 """Real zenoh sessions on a loopback port: a router and clients, all in this process."""
 
+import signal
+import subprocess
+import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
 from services.stack import free_port
 from shared.bus import (
+    MSGPACK,
     Batched,
     BusConfig,
     RemoteError,
@@ -19,17 +26,23 @@ from shared.bus import (
     open_session,
     service_key,
 )
-from shared.messages import DecodeReply, DecodeRequest, WireArray, unpack
-from shared.validation import FieldError
+from shared.messages import DecodeReply, DecodeRequest, ErrorReply, WireArray, unpack
+from shared.validation import FieldError, check_latents
 
 
 @pytest.fixture(scope="module")
-def network():
+def endpoint():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(BusConfig(mode="router", listen=[endpoint]))
+    yield endpoint
+    close_quietly(router)
+
+
+@pytest.fixture(scope="module")
+def network(endpoint):
     sessions = [open_session(BusConfig(connect=[endpoint], open_timeout_s=5)) for _ in range(3)]
     yield sessions
-    for session in [*sessions, router]:
+    for session in sessions:
         close_quietly(session)
 
 
@@ -184,3 +197,99 @@ def test_opening_without_a_router_gives_up_after_its_timeout():
     config = BusConfig(connect=[f"tcp/127.0.0.1:{free_port()}"], open_timeout_s=0.5)
     with pytest.raises(ConnectionError, match="no zenoh router"):
         open_session(config)
+
+
+def latents_handler(payload: bytes) -> DecodeReply:
+    z = check_latents("latents", unpack(payload, DecodeRequest).latents, 2, max_rows=8)
+    return DecodeReply(images=WireArray.of(np.zeros((len(z), 1, 1, 3), np.uint8)))
+
+
+def raw_latents(shape: list[int], data: bytes = b"") -> bytes:
+    array = {"shape": shape, "dtype": "<f4", "data": data}
+    return msgpack.packb({"v": 1, "task": "t", "latents": array})
+
+
+@pytest.mark.parametrize(
+    ("payload", "field"),
+    [
+        (raw_latents([0, 2**64 - 1]), "latents.shape.1"),
+        (raw_latents([2**62, 2**62, 0]), "latents.shape.0"),
+        (raw_latents([2**30, 2**30, 0]), "latents"),
+        (raw_latents([0, 2]), "latents"),  # empty: no rows to decode
+        (raw_latents([1, 2], b"12"), "latents"),  # byte count against shape
+        (b"\xc1 not msgpack", None),
+    ],
+    ids=["2**64-1", "2**62 x 2**62 x 0", "2**60 elements", "no rows", "short data", "not msgpack"],
+)
+def test_bad_arrays_get_bad_request_by_field_and_the_query_ends_at_once(network, payload, field):
+    a, _, caller = network
+    server = Server(a, "strict", "x")
+    server.serve(service_key("strict", "t", "decode"), latents_handler)
+    time.sleep(0.3)
+    started = time.monotonic()
+    replies = list(
+        caller.get(
+            service_key("strict", "t", "decode"), payload=payload, encoding=MSGPACK, timeout=5
+        )
+    )
+    took = time.monotonic() - started  # until the query was finalized, not its first reply
+    server.close()
+    assert len(replies) == 1 and replies[0].err is not None
+    error = unpack(replies[0].err.payload.to_bytes(), ErrorReply)
+    assert error.code == "bad_request", error
+    assert (error.field or "").startswith(field) if field else error.field is None
+    assert took < 1.0, took  # closed after the reply, not left to the caller's timeout
+
+
+def start_replica(endpoint: str, instance: str) -> subprocess.Popen:
+    script = Path(__file__).with_name("replica_process.py")
+    process = subprocess.Popen(
+        [sys.executable, str(script), endpoint, instance], stdout=subprocess.PIPE, text=True
+    )
+    assert process.stdout is not None and process.stdout.readline().strip() == "ready"
+    return process
+
+
+def live(replicas: Replicas, service: str, count: int) -> None:
+    deadline = time.monotonic() + 5
+    while len(replicas._alive.get(service, [])) != count:
+        assert time.monotonic() < deadline, replicas._alive
+        time.sleep(0.02)
+
+
+@pytest.mark.parametrize("stall_s", [0.3, 0.0], ids=["stalled then killed", "killed"])
+def test_queries_held_by_a_replica_that_dies_are_answered_by_a_live_one(endpoint, network, stall_s):
+    a, _, caller = network
+    server = Server(a, "decoder", "b")  # the replica that lives, in this process
+    server.serve(service_key("decoder", "t", "decode"), echo_handler("b", []))
+    doomed = start_replica(endpoint, "dying")
+    replicas = Replicas(caller)
+    try:
+        live(replicas, "decoder", 2)
+
+        def decode(_: int) -> str:
+            pending = call(
+                caller,
+                "decoder",
+                "t",
+                "decode",
+                request(np.zeros((1, 2))),
+                DecodeReply,
+                deadline_s=3.0,
+                replicas=replicas,
+            )
+            return chr(pending.result().images.numpy()[0, 0, 0, 0])
+
+        with ThreadPoolExecutor(8) as pool:
+            if stall_s:
+                doomed.send_signal(signal.SIGSTOP)  # queries sent to it now stay with it
+            answers = pool.map(decode, range(80))
+            time.sleep(stall_s or 0.05)
+            doomed.kill()
+            answered = list(answers)  # raises if any query failed
+        assert len(answered) == 80 and set(answered) <= {"d", "b"}
+        assert "b" in answered
+    finally:
+        doomed.kill()
+        doomed.wait(10)
+        server.close()

@@ -342,6 +342,7 @@ def test_save_load_round_trip(tmp_path):
     roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric="inf", w_eps=1.5))
     roadmap.save(tmp_path / "lsr")
     assert sorted(p.name for p in (tmp_path / "lsr").iterdir()) == [
+        "MANIFEST.json",  # the sha256 of the other two, written last
         "roadmap.json",
         "roadmap.safetensors",
     ]
