@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from services.apn.model import APN, HYBRID_MAX_CLASSES, APNConfig, Head
 from services.encoder.checkpoint import encode_images, load_vae
-from shared.checkpoint import read_config, weights_file
+from shared.checkpoint import read_config, replace_atomically, seal, weights_file
 from shared.dataset import load_dataset
 from shared.tasks import get_task
 from shared.tasks.base import TaskError
@@ -116,7 +116,6 @@ def train_apn(
             best = record
             best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
     (out_dir / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
-    save_file(best_state, out_dir / "apn.safetensors")
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -135,7 +134,10 @@ def train_apn(
         "best": best,
         "seconds": time.perf_counter() - started,
     }
-    (out_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
+    text = json.dumps(meta, indent=2) + "\n"
+    replace_atomically(out_dir / "apn.safetensors", lambda tmp: save_file(best_state, tmp))
+    replace_atomically(out_dir / "config.json", lambda tmp: tmp.write_text(text))
+    seal(out_dir, ["apn.safetensors", "config.json"])
     return meta
 
 

@@ -21,7 +21,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from services.encoder.model import to_tensor
-from shared.checkpoint import read_config, weights_file
+from shared.checkpoint import read_config, replace_atomically, seal, weights_file
 from shared.dataset import Dataset
 from shared.tasks import get_task
 
@@ -119,9 +119,7 @@ def train_reader(
     model.eval()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    save_file(
-        {k: v.contiguous() for k, v in model.state_dict().items()}, out_dir / "reader.safetensors"
-    )
+    weights = {k: v.contiguous() for k, v in model.state_dict().items()}
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -134,7 +132,10 @@ def train_reader(
             "seconds": time.perf_counter() - started,
         },
     }
-    (out_dir / "config.json").write_text(json.dumps(meta, indent=2) + "\n")
+    text = json.dumps(meta, indent=2) + "\n"
+    replace_atomically(out_dir / "reader.safetensors", lambda tmp: save_file(weights, tmp))
+    replace_atomically(out_dir / "config.json", lambda tmp: tmp.write_text(text))
+    seal(out_dir, ["reader.safetensors", "config.json"])
     return meta
 
 

@@ -6,6 +6,7 @@ import torch
 
 from services.apn.model import APN, APNConfig
 from services.apn.train import APNTrainConfig, evaluate_apn, load_apn, propose
+from shared.checkpoint import verify
 
 
 @pytest.mark.parametrize("head", ["classify", "regress"])
@@ -39,6 +40,7 @@ def test_train_load_evaluate(tiny_model):
     model_dir, data = tiny_model
     apn, meta = load_apn(model_dir / "apn")
     assert meta["format"] == "lsr-apn" and meta["pairs"]["val"] >= 1
+    assert verify(model_dir / "apn")  # written atomically and sealed
     assert meta["pairs"]["train_samples"] == 2 * meta["pairs"]["train"]  # means + S = 1 draw
     lines = (model_dir / "apn" / "log.jsonl").read_text().splitlines()
     assert [json.loads(x)["epoch"] for x in lines] == [1, 2, 3]
