@@ -185,7 +185,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as logs:
         config = StackConfig(
-            port=free_port(), zenoh_port=free_port(), model_dir=args.model, log_dir=Path(logs)
+            port=free_port(), zenoh_port=free_port(), models=(args.model,), log_dir=Path(logs)
         )
         with Stack(config) as stack:
             stack.start()

@@ -18,10 +18,9 @@ from services.encoder.checkpoint import WEIGHTS, read_vae_config
 from shared.bus import Operation, Server, close_quietly, new_instance_id, open_session, service_key
 from shared.checkpoint import MANIFEST, CheckpointError, verify, weights_file
 from shared.messages import InfoReply
-from shared.settings import Settings
+from shared.settings import MODEL_PARTS, Settings
 
 log = logging.getLogger(__name__)
-MODEL_PARTS = ("vae", "roadmap", "apn")  # what the services load
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,8 @@
 """`lsr up`: a zenoh router, every service and the gateway as child processes on loopback.
 
-The same launcher starts the stack for the end-to-end tests and the latency benchmark.
+Each model folder (one a task) gets its own encoder, planner, APN and sim process: services
+already key their operations by task, so a task is served by adding processes, and a process
+holds one model. The same launcher starts the stack for the end-to-end tests and benchmarks.
 """
 
 from __future__ import annotations
@@ -21,7 +23,16 @@ from pathlib import Path
 from typing import IO
 
 from shared.bus import SERVICES
-from shared.settings import SHIPPED_MODEL
+from shared.settings import shipped_models
+
+
+def model_task(model_dir: Path) -> str:
+    """The task a model folder serves, as its VAE's config records it (no torch import)."""
+    path = Path(model_dir) / "vae" / "config.json"
+    try:
+        return json.loads(path.read_text())["dataset"]["task"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise ValueError(f"{model_dir}: not a model folder (no task in {path})") from None
 
 
 @dataclass
@@ -29,12 +40,24 @@ class StackConfig:
     host: str = "127.0.0.1"
     port: int = 8000
     zenoh_port: int = 7447
-    model_dir: Path = SHIPPED_MODEL
+    models: tuple[Path, ...] = field(default_factory=shipped_models)  # one folder a task
     log_dir: Path | None = None  # None: children write to this terminal
     env: dict[str, str] = field(default_factory=dict)
     # Files of `shared.zenoh_access.write_deployment`: each child gets its role's file as
     # LSR_ZENOH_CONFIG (the router: router.json5). None: an open bus, for loopback development.
     zenoh_access: Path | None = None
+
+    def __post_init__(self) -> None:
+        self.models = tuple(Path(m) for m in self.models)
+        if not self.models:
+            raise ValueError("no model folders to serve")
+        tasks = [model_task(m) for m in self.models]
+        if len(set(tasks)) != len(tasks):
+            raise ValueError(f"two model folders serve the same task: {tasks}")
+
+    @property
+    def tasks(self) -> list[str]:
+        return [model_task(m) for m in self.models]
 
     @property
     def endpoint(self) -> str:
@@ -65,7 +88,7 @@ class Stack:
         env = {
             **os.environ,
             "LSR_ZENOH_CONNECT": self.config.endpoint,
-            "LSR_MODEL_DIR": str(self.config.model_dir),
+            "LSR_TASKS": json.dumps(self.config.tasks),
             "PYTHONUNBUFFERED": "1",
             **self.config.env,
         }
@@ -91,8 +114,13 @@ class Stack:
         listen = ["router", "--listen", f"tcp/127.0.0.1:{self.config.zenoh_port}"]
         self._spawn("router", listen, "router")
 
-    def start_service(self, service: str, name: str | None = None) -> subprocess.Popen:
-        return self._spawn(name or service, ["serve", service], service)
+    def start_service(
+        self, service: str, name: str | None = None, model: Path | None = None
+    ) -> subprocess.Popen:
+        """One service process for one model (default: the first); named `service-task`."""
+        model = model or self.config.models[0]
+        name = name or f"{service}-{model_task(model)}"
+        return self._spawn(name, ["serve", service, "--model", str(model)], service)
 
     def start_gateway(self) -> None:
         args = ["serve", "gateway", "--host", self.config.host, "--port", str(self.config.port)]
@@ -101,8 +129,9 @@ class Stack:
     def start(self) -> None:
         self.start_router()
         self._wait_for_router()
-        for service in SERVICES:
-            self.start_service(service)
+        for model in self.config.models:
+            for service in SERVICES:
+                self.start_service(service, model=model)
         self.start_gateway()
 
     def _wait_for_router(self, timeout_s: float = 15.0) -> None:

@@ -9,8 +9,16 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.bus import DEFAULT_ENDPOINT, BusConfig
 
-# The shipped model, found from the source tree (not the working directory).
-SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "box_stacking"
+# The shipped models, found from the source tree (not the working directory): one folder a task.
+MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+SHIPPED_MODEL = MODELS_DIR / "box_stacking"
+MODEL_PARTS = ("vae", "roadmap", "apn")  # what the services load
+
+
+def shipped_models() -> tuple[Path, ...]:
+    """Every shipped model folder with all the parts the services load."""
+    folders = MODELS_DIR.iterdir() if MODELS_DIR.is_dir() else ()
+    return tuple(sorted(p for p in folders if all((p / part).is_dir() for part in MODEL_PARTS)))
 
 
 class Settings(BaseSettings):
@@ -29,7 +37,9 @@ class Settings(BaseSettings):
     )
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
-    tasks: list[str] = ["box_stacking"]
+    tasks: list[str] = Field(
+        ["box_stacking"], description="gateway: the tasks served (JSON list); others get 404"
+    )
     deadline_s: float = Field(
         4.0, gt=0, description="per request: all its service calls, retries included"
     )

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from services.cli.common import env_settings
-from shared.settings import SHIPPED_MODEL
+from shared.settings import shipped_models
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -40,9 +40,8 @@ def cmd_ping(args: argparse.Namespace) -> int:
 def cmd_up(args: argparse.Namespace) -> int:
     from services.stack import StackConfig, run_up
 
-    config = StackConfig(
-        host=args.host, port=args.port, zenoh_port=args.zenoh_port, model_dir=args.model
-    )
+    models = tuple(args.model) if args.model else shipped_models()
+    config = StackConfig(host=args.host, port=args.port, zenoh_port=args.zenoh_port, models=models)
     return run_up(config)
 
 
@@ -71,5 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--host", default="127.0.0.1")
     up.add_argument("--port", type=int, default=8000)
     up.add_argument("--zenoh-port", type=int, default=7447)
-    up.add_argument("--model", type=Path, default=SHIPPED_MODEL, help="default: the shipped one")
+    up.add_argument(
+        "--model",
+        type=Path,
+        action="append",
+        help="a model folder to serve, once per task (default: every shipped model)",
+    )
     up.set_defaults(handler=cmd_up)

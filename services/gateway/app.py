@@ -24,7 +24,7 @@ from pydantic import ValidationError
 from services.gateway.auth import ApiKeys, load_digests
 from services.gateway.inputs import BodyError, clip, error_detail, parse_json
 from services.gateway.middleware import ARRIVED, Admission, BodyLimit, GuardedRoute
-from services.gateway.planning import Gateway, plan_query_error
+from services.gateway.planning import Gateway, TaskNotServed, plan_query_error
 from services.gateway.schemas import (
     ExecuteRequest,
     ExecuteResponse,
@@ -67,6 +67,8 @@ def error_body(exc: Exception) -> tuple[int, Any] | None:
         return 422, error_detail(exc.errors(include_url=False), prefix=["body"])
     if isinstance(exc, RequestValidationError):  # FastAPI's: locations start with "body"
         return 422, error_detail(exc.errors())
+    if isinstance(exc, TaskNotServed):
+        return 404, clip(str(exc))
     if isinstance(exc, ServiceUnavailable):
         return 503, clip(str(exc))
     if isinstance(exc, RemoteError):
@@ -173,7 +175,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         headers = {"Retry-After": "1"} if status == 503 else None
         return JSONResponse({"detail": detail}, status_code=status, headers=headers)
 
-    for kind in (FieldError, ServiceUnavailable, RemoteError, RequestValidationError):
+    for kind in (
+        FieldError,
+        TaskNotServed,
+        ServiceUnavailable,
+        RemoteError,
+        RequestValidationError,
+    ):
         app.add_exception_handler(kind, known_error)
     app.router.route_class = GuardedRoute
 
@@ -184,6 +192,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def health(request: Request) -> JSONResponse:
         report = gateway(request).health()
         return JSONResponse(report.model_dump(), status_code=200 if report.status == "ok" else 503)
+
+    @app.get("/tasks")
+    def tasks() -> dict[str, list[str]]:
+        """The tasks this deployment serves (every other known task gets 404 on the routes)."""
+        return {"tasks": list(settings.tasks)}
 
     @app.get("/tasks/{task}")
     def task_info(task: str) -> dict[str, Any]:

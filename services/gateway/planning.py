@@ -44,6 +44,13 @@ from shared.validation import FieldError, parse_state
 INFO_TTL_S = 10.0
 
 
+class TaskNotServed(LookupError):
+    """A known task that no service of this deployment serves (404, not a 503 after a wait)."""
+
+    def __init__(self, task: str, served: list[str]) -> None:
+        super().__init__(f"task {task!r} is not served here; served tasks are {served}")
+
+
 def decode_b64_image(field: str, text: str, size: int) -> np.ndarray:
     if text.startswith("data:"):
         text = text.partition(",")[2]
@@ -65,13 +72,20 @@ class Gateway:
         self._sizes: dict[str, tuple[float, int]] = {}  # task -> (when asked, image size)
         self.pngs = PngCache()
 
+    def served(self, task: str) -> str:
+        if task not in self.settings.tasks:
+            raise TaskNotServed(task, self.settings.tasks)
+        return task
+
     def client(self, task: str) -> PlanningClient:
+        self.served(task)
         if task not in self._clients:
             self._clients[task] = PlanningClient(self.session, task, self.settings.deadline_s)
         return self._clients[task]
 
     def image_size(self, task: str, deadline: float) -> int:
         """The model's image size, asked of the encoder and remembered for a few seconds."""
+        self.served(task)
         cached = self._sizes.get(task)
         if cached is None or time.monotonic() - cached[0] > INFO_TTL_S:
             timeout_s = max(0.05, min(1.5, deadline - time.monotonic()))
@@ -133,6 +147,7 @@ class Gateway:
         LSR_DEADLINE_S from now), so that a hang anywhere costs the caller that budget once.
         """
         started = time.perf_counter()
+        self.served(request.task)
         deadline = deadline or time.monotonic() + self.settings.deadline_s
         endpoints = {"start": request.start, "goal": request.goal}
         images = self._images(request.task, endpoints, deadline)
@@ -161,13 +176,13 @@ class Gateway:
         return response, server_timing(outcome.timings, (time.perf_counter() - started) * 1e3)
 
     def render(self, request: RenderRequest, deadline: float | None = None) -> RenderResponse:
-        state = parse_state(get_task(request.task), "state", request.state)
+        state = parse_state(get_task(self.served(request.task)), "state", request.state)
         deadline = deadline or time.monotonic() + self.settings.deadline_s
         image = self.client(request.task).render([state], request.seed, deadline)[0]
         return RenderResponse(image=png_b64(image))
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:
-        logic = get_task(request.task)
+        logic = get_task(self.served(request.task))
         start = parse_state(logic, "start.state", request.start.state)
         goal_state = goal_image = None
         if request.goal.state is not None:

@@ -60,7 +60,7 @@ def stack(tmp_path_factory, access):
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
-        model_dir=MODEL,
+        models=(MODEL,),
         log_dir=tmp_path_factory.mktemp("stack-logs"),
         zenoh_access=access,
     )
@@ -360,14 +360,14 @@ def planners(http: httpx.Client) -> int:
 def test_a_replica_takes_over_when_one_is_killed(stack, http):
     stack.start_service("planner", name="planner-2")
     wait_for(lambda: planners(http) == 2)
-    stack.stop("planner", sig=signal.SIGKILL)
+    stack.stop("planner-box_stacking", sig=signal.SIGKILL)
     codes = [plan_ok(http) for _ in range(10)]
     assert codes == [200] * 10
     wait_for(lambda: planners(http) == 1)
 
 
 def test_a_stopped_service_gives_503_by_name_then_recovers(stack, http):
-    stack.stop("apn")
+    stack.stop("apn-box_stacking")
     started = time.monotonic()
     reply = http.post("/plan", json=GOOD)
     assert reply.status_code == 503 and "apn" in reply.json()["detail"]
@@ -380,7 +380,7 @@ def test_a_stopped_service_gives_503_by_name_then_recovers(stack, http):
 
 
 def test_lsr_up_refuses_ports_in_use(stack):
-    config = StackConfig(port=stack.config.port, zenoh_port=free_port())
+    config = StackConfig(port=stack.config.port, zenoh_port=free_port(), models=(MODEL,))
     with pytest.raises(ValueError, match="not free"):
         check_ports_free(config)
 
