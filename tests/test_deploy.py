@@ -1,6 +1,7 @@
 """The deployment files, checked without a docker engine: docker-compose.yml against the compose
 specification and the wiring the services expect; the Dockerfile against the Makefile's install."""
 
+import json
 import re
 import shlex
 import subprocess
@@ -16,8 +17,13 @@ from shared.zenoh_access import write_deployment
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL_SERVICES = ("encoder", "planner", "apn", "sim")
+# Compose service name -> (service it runs, task whose model it mounts): four for each task.
+TASK_SERVICES = {
+    f"{prefix}{name}": (name, task)
+    for prefix, task in (("", "box_stacking"), ("cloth-", "cloth_folding"))
+    for name in MODEL_SERVICES
+}
 SERVICES = (*MODEL_SERVICES, "gateway")
-MODEL_DIR = "/models/box_stacking"
 OPTIONS_WITH_VALUE = {"--index-url", "-i", "--extra-index-url"}
 
 
@@ -83,28 +89,37 @@ def test_router_is_the_python_packages_zenoh_without_multicast() -> None:
     assert "--no-multicast-scouting" in router["command"]
 
 
-@pytest.mark.parametrize("name", SERVICES)
+@pytest.mark.parametrize("name", [*TASK_SERVICES, "gateway"])
 def test_service_runs_the_project_image_on_the_router(name: str) -> None:
     service = compose_services()[name]
+    runs = TASK_SERVICES.get(name, (name, None))[0]
     build = service["build"]
     context = ROOT / (build if isinstance(build, str) else build["context"])
     dockerfile = "Dockerfile" if isinstance(build, str) else build.get("dockerfile", "Dockerfile")
     assert (context / dockerfile).resolve() == ROOT / "Dockerfile"
-    assert service["command"][:3] == ["lsr", "serve", name]
+    assert service["command"][:3] == ["lsr", "serve", runs]
     assert setting(service, "--connect", "LSR_ZENOH_CONNECT") == "tcp/zenohd:7447"
     assert "zenohd" in service["depends_on"]
     assert service["healthcheck"]["test"][0] == "CMD"
     assert "container_name" not in service  # `docker compose up --scale NAME=N` needs that
 
 
-@pytest.mark.parametrize("name", MODEL_SERVICES)
-def test_model_service_mounts_the_model_read_only(name: str) -> None:
+@pytest.mark.parametrize("name", TASK_SERVICES)
+def test_model_service_mounts_its_tasks_model_read_only(name: str) -> None:
     service = compose_services()[name]
-    assert setting(service, "--model", "LSR_MODEL_DIR") == MODEL_DIR
-    mount = next(v for v in service["volumes"] if v["target"] == MODEL_DIR)
+    runs, task = TASK_SERVICES[name]
+    model_dir = f"/models/{task}"
+    assert setting(service, "--model", "LSR_MODEL_DIR") == model_dir
+    mount = next(v for v in service["volumes"] if v["target"] == model_dir)
     assert mount["read_only"] is True
-    assert (ROOT / mount["source"]).resolve() == ROOT / "models" / "box_stacking"
-    assert service["healthcheck"]["test"] == ["CMD", "lsr", "ping", name, "--this-host"]
+    assert (ROOT / mount["source"]).resolve() == ROOT / "models" / task
+    assert service["healthcheck"]["test"] == ["CMD", "lsr", "ping", runs, "--this-host"]
+
+
+def test_gateway_serves_every_task_that_has_services() -> None:
+    services = compose_services()
+    served = json.loads(services["gateway"]["environment"]["LSR_TASKS"])
+    assert sorted(served) == sorted({task for _, task in TASK_SERVICES.values()})
 
 
 def test_gateway_publishes_port_8000() -> None:
@@ -144,13 +159,14 @@ def test_every_process_joins_the_bus_with_its_own_generated_credentials(tmp_path
     assert "/run/secrets/zenoh_users" in written["router"].read_text()
     files = {name: Path(secret["file"]).name for name, secret in secrets.items()}
     assert files["zenoh_router"] == "router.json5" and files["zenoh_users"] == "users.txt"
-    for name in SERVICES:
+    for name in [*TASK_SERVICES, "gateway"]:
+        role = TASK_SERVICES.get(name, (name, None))[0]  # a role per service, whatever its task
         env = services[name]["environment"]
-        assert env["LSR_ZENOH_CONFIG"] == f"/run/secrets/zenoh_{name}"
-        assert f"zenoh_{name}" in services[name]["secrets"]
-        assert files[f"zenoh_{name}"] == written[name].name  # the generator writes that name
+        assert env["LSR_ZENOH_CONFIG"] == f"/run/secrets/zenoh_{role}"
+        assert f"zenoh_{role}" in services[name]["secrets"]
+        assert files[f"zenoh_{role}"] == written[role].name  # the generator writes that name
 
 
-@pytest.mark.parametrize("name", MODEL_SERVICES)
+@pytest.mark.parametrize("name", TASK_SERVICES)
 def test_model_services_refuse_an_unsealed_model(name: str) -> None:
     assert compose_services()[name]["environment"]["LSR_REQUIRE_SEALED_MODEL"] == "true"
