@@ -53,7 +53,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             for state in picks:
                 world.reset(state, rng)
                 images.append(world.render())
-                labels.append(" ".join("".join(w[0].upper() for w in f.split("_")) for f in state))
+                initials = ("".join(w[0].upper() for w in f.split("_")) for f in state)
+                labels.append(" ".join(initials) or "flat")
             action = task.legal_actions(picks[-1])[0]
             world.execute(world.demonstrated(action, rng), rng)
             what, columns = f"all {len(picks)} states and the last one after a move", 6
