@@ -27,7 +27,7 @@ def parse_state(task: Task, field: str, obj: Any) -> Any:
     try:
         state = task.parse_state(obj)
     except InvalidStateError as exc:
-        raise FieldError(field, str(exc)) from None
+        raise FieldError(field if exc.key is None else f"{field}.{exc.key}", str(exc)) from None
     if isinstance(obj, dict):
         known = task.state_to_json(state)
         unknown = [key for key in obj if key not in known]

@@ -20,7 +20,12 @@ Action = TypeVar("Action")
 
 
 class TaskError(ValueError):
-    """Bad input for a task; the message names what is wrong."""
+    """Bad input for a task; the message names what is wrong, `key` the offending key of the
+    object given (an unknown key, say), so that callers can point at it."""
+
+    def __init__(self, message: str, key: str | None = None) -> None:
+        super().__init__(message)
+        self.key = key
 
 
 class InvalidStateError(TaskError):

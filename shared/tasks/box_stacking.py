@@ -94,7 +94,9 @@ class BoxStacking(Task[Stacks, Move]):
             raise InvalidStateError("state: expected an object with a 'stacks' list")
         extra = sorted(set(obj) - {"stacks"}, key=str)
         if extra:
-            raise InvalidStateError(f"state: unknown key {extra[0]!r}; a state has only 'stacks'")
+            raise InvalidStateError(
+                f"state: unknown key {extra[0]!r}; a state has only 'stacks'", key=str(extra[0])
+            )
         stacks = obj["stacks"]
         if not isinstance(stacks, list | tuple):
             raise InvalidStateError("state.stacks: expected a list of columns")

@@ -178,7 +178,9 @@ class ClothFolding(Task[Folds, ClothAction]):
             raise InvalidStateError(f"state: expected an object with a 'folds' list{got}")
         extra = sorted(set(obj) - {"folds"})
         if extra:
-            raise InvalidStateError(f"state: unknown key {extra[0]!r}; a state has only 'folds'")
+            raise InvalidStateError(
+                f"state: unknown key {extra[0]!r}; a state has only 'folds'", key=str(extra[0])
+            )
         folds = obj["folds"]
         if not isinstance(folds, list | tuple):
             raise InvalidStateError("state.folds: expected a list of fold names")

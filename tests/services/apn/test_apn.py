@@ -79,3 +79,5 @@ def test_cloth_apn_reports_table_two(tiny_cloth_model):
     mse = result["mse"]
     assert mse["total"] >= mse["pick"] + mse["release"] - 1e-9 and mse["pick"] >= 0
     assert result["pick_pixels"]["mean"] >= 0 and 0 <= result["same_move"] <= 100
+    noise = result["mse_click_noise"]  # every demonstrated click matches a move
+    assert 0 < noise["pick"] <= noise["total"]
