@@ -1,7 +1,7 @@
 """End to end: the real router, services and gateway as processes on free loopback ports.
 
-The stack serves the shipped model. Tests run in file order; the ones that stop or kill
-processes come last.
+The stack serves both shipped models (box stacking and cloth folding), four services each.
+Tests run in file order; the ones that stop or kill processes come last.
 """
 
 from __future__ import annotations
@@ -36,7 +36,13 @@ from shared.tasks import get_task
 from shared.zenoh_access import write_deployment
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
+CLOTH_MODEL = MODEL.parent / "cloth_folding"
 TASK = get_task("box_stacking")
+CLOTH = get_task("cloth_folding")
+CLOTH_START = {"folds": ["top_left", "bottom_right"]}
+CLOTH_GOAL = {"folds": ["top_right", "bottom_right"]}
+CLOTH_GOOD = {"task": "cloth_folding", "start": {"state": CLOTH_START},
+              "goal": {"state": CLOTH_GOAL}}  # fmt: skip
 START = {"stacks": [["red", "green"], ["blue"], ["yellow"]]}
 GOAL = {"stacks": [[], ["yellow", "green", "red"], ["blue"]]}
 GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOAL}}
@@ -60,7 +66,7 @@ def stack(tmp_path_factory, access):
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
-        models=(MODEL,),
+        models=(MODEL, CLOTH_MODEL),
         log_dir=tmp_path_factory.mktemp("stack-logs"),
         zenoh_access=access,
     )
@@ -92,14 +98,16 @@ def render(http: httpx.Client, state: dict, seed: int = 0) -> str:
     return reply.json()["image"]
 
 
-def assert_plans_lead_from(start: dict, goal: dict, body: dict, images: bool = True) -> None:
+def assert_plans_lead_from(
+    start: dict, goal: dict, body: dict, images: bool = True, task=TASK
+) -> None:
     """Every plan is legal move by move from start and ends at goal, per the task's rules."""
     assert body["plans"], body
     for plan in body["plans"]:
-        state = TASK.parse_state(start)
+        state = task.parse_state(start)
         for action in plan["actions"]:
-            state = TASK.apply(state, TASK.parse_action(action))  # raises on an illegal move
-        assert state == TASK.parse_state(goal)
+            state = task.apply(state, task.parse_action(action))  # raises on an illegal move
+        assert state == task.parse_state(goal)
         assert len(plan["nodes"]) == len(plan["actions"]) + 1
         if images:
             assert len(plan["images"]) == len(plan["actions"]) + 1
@@ -112,7 +120,10 @@ def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
     assert reply.status_code == 200
     services = reply.json()["services"]
     assert set(services) == {"encoder", "planner", "apn", "sim"}
-    assert all(s["status"] == "ok" and len(s["instances"]) == 1 for s in services.values())
+    for service in services.values():  # one instance per task
+        assert service["status"] == "ok"
+        assert sorted(i["task"] for i in service["instances"]) == ["box_stacking", "cloth_folding"]
+    assert http.get("/tasks").json() == {"tasks": ["box_stacking", "cloth_folding"]}
     tokens = {str(r.ok.key_expr).split("/")[2] for r in bus.liveliness().get("lsr/alive/**")}
     assert tokens == {"encoder", "planner", "apn", "sim", "gateway"}
     assert http.get("/tasks/box_stacking").json()["num_states"] == 288
@@ -177,6 +188,46 @@ def test_zenoh_query_and_robot_publication(bus):
 
     bad = list(bus.get(API_PLAN_KEY, payload=b"{not json", encoding=JSON, timeout=10))
     assert bad[0].err is not None and json.loads(bad[0].err.payload.to_bytes())["status"] == 422
+
+
+def test_cloth_plans_fold_move_by_move_from_start_to_goal(http):
+    reply = http.post("/plan", json={**CLOTH_GOOD, "max_plans": 4})
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(CLOTH_START, CLOTH_GOAL, reply.json(), task=CLOTH)
+    start, goal = (
+        http.post("/render", json={"task": "cloth_folding", "state": s, "seed": 9}).json()["image"]
+        for s in (CLOTH_START, CLOTH_GOAL)
+    )
+    from_images = {"task": "cloth_folding", "start": {"image": start}, "goal": {"image": goal}}
+    reply = http.post("/plan", json=from_images)
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(CLOTH_START, CLOTH_GOAL, reply.json(), task=CLOTH)
+
+
+def test_cloth_execute_reaches_its_goal(http):
+    reply = http.post("/execute", json={**CLOTH_GOOD, "seed": 4})
+    assert reply.status_code == 200, reply.text
+    body = reply.json()
+    assert body["success"] and CLOTH.parse_state(body["final_state"]) == CLOTH.parse_state(
+        CLOTH_GOAL
+    )
+    assert len(body["steps"]) == 2  # unfold top_left, fold top_right (either order)
+    assert all(set(step["action"]) == {"pick", "release", "height"} for step in body["steps"])
+
+
+@pytest.mark.parametrize(
+    ("body", "field", "message"),
+    [
+        ({**CLOTH_GOOD, "start": {"state": {"folds": ["top_left", "top_left"]}}}, "start",
+         "appears twice"),
+        ({**CLOTH_GOOD, "goal": {"state": {"folds": ["middle"]}}}, "goal", "unknown fold"),
+        ({**CLOTH_GOOD, "start": {"state": START}}, "start", "'folds'"),
+    ],
+)  # fmt: skip
+def test_invalid_cloth_states_name_their_field(http, body, field, message):
+    reply = http.post("/plan", json=body)
+    assert reply.status_code == 422, reply.text
+    assert field in reply.text and message in reply.text
 
 
 def test_plan_from_a_state_to_itself_has_no_action(http):
@@ -353,8 +404,9 @@ def wait_for(predicate, timeout_s: float = 60.0) -> None:
         time.sleep(0.3)
 
 
-def planners(http: httpx.Client) -> int:
-    return len(http.get("/health").json()["services"]["planner"]["instances"])
+def planners(http: httpx.Client, task: str = "box_stacking") -> int:
+    instances = http.get("/health").json()["services"]["planner"]["instances"]
+    return sum(i["task"] == task for i in instances)
 
 
 def test_a_replica_takes_over_when_one_is_killed(stack, http):
