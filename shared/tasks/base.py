@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from functools import cached_property
 from typing import Any, Generic, TypeVar
 
 import numpy as np
@@ -87,12 +88,24 @@ class Task(ABC, Generic[State, Action]):
     def neighbours(self, state: State) -> list[tuple[Action, State]]:
         return [(a, self._apply_legal(state, a)) for a in self.legal_actions(state)]
 
-    @abstractmethod
-    def sample_state(self, rng: np.random.Generator) -> State: ...
+    def sample_state(self, rng: np.random.Generator) -> State:
+        """A state drawn uniformly; tasks that cannot enumerate their states override this."""
+        states = self.all_states()
+        if states is None:
+            raise NotImplementedError(f"{self.name}: no all_states() to sample from")
+        return states[int(rng.integers(len(states)))]
 
     def all_states(self) -> Sequence[State] | None:
         """Every state, for tasks small enough to enumerate; None otherwise."""
         return None
+
+    def state_index(self, state: State) -> int:
+        """Position of `state` in `all_states()`: a class label for evaluation."""
+        return self._state_indices[state]
+
+    @cached_property
+    def _state_indices(self) -> dict[State, int]:
+        return {s: i for i, s in enumerate(self.all_states() or ())}
 
     # --- fixed-shape array codecs (datasets, evaluation), described by `spec` ---
     @property

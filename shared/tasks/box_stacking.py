@@ -198,10 +198,6 @@ class BoxStacking(Task[Stacks, Move]):
         columns[action.release.col].append(box)
         return tuple(tuple(column) for column in columns)
 
-    def sample_state(self, rng: np.random.Generator) -> Stacks:
-        states = self.all_states()
-        return states[int(rng.integers(len(states)))]
-
     def all_states(self) -> tuple[Stacks, ...]:
         return self._all_states
 
@@ -218,14 +214,6 @@ class BoxStacking(Task[Stacks, Move]):
                 cuts = np.cumsum((0, *h))
                 states.append(tuple(tuple(order[cuts[i] : cuts[i + 1]]) for i in range(len(h))))
         return tuple(sorted(states))
-
-    @cached_property
-    def _state_index(self) -> dict[Stacks, int]:
-        return {s: i for i, s in enumerate(self._all_states)}
-
-    def state_index(self, state: Stacks) -> int:
-        """Position of `state` in `all_states()`: a class label for evaluation."""
-        return self._state_index[state]
 
     # ----- array codecs -----
     def state_to_array(self, state: Stacks) -> np.ndarray:

@@ -271,10 +271,6 @@ class ClothFolding(Task[Folds, ClothAction]):
         folded = set(state) ^ {move.corner}
         return tuple(c for c in self.config.corners if c in folded)
 
-    def sample_state(self, rng: np.random.Generator) -> Folds:
-        states = self.all_states()
-        return states[int(rng.integers(len(states)))]
-
     def all_states(self) -> tuple[Folds, ...]:
         return self._all_states
 
@@ -284,14 +280,6 @@ class ClothFolding(Task[Folds, ClothAction]):
         return tuple(
             subset for k in range(len(corners) + 1) for subset in itertools.combinations(corners, k)
         )
-
-    @cached_property
-    def _state_index(self) -> dict[Folds, int]:
-        return {s: i for i, s in enumerate(self._all_states)}
-
-    def state_index(self, state: Folds) -> int:
-        """Position of `state` in `all_states()`: a class label for evaluation."""
-        return self._state_index[state]
 
     # ----- array codecs -----
     def state_to_array(self, state: Folds) -> np.ndarray:
