@@ -1,6 +1,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -86,3 +87,11 @@ def test_robot_refuses_an_id_that_is_not_one_key_chunk(capsys):
         main(["robot", "--robot-id", "arm/7", "--start-state", "{}", "--goal-state", "{}"])
     assert exit_info.value.code == 2
     assert "not one zenoh key chunk" in capsys.readouterr().err
+
+
+def test_eval_system_prints_table_three_for_the_shipped_model(capsys):
+    model = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
+    assert main(["eval", "system", "--model", str(model), "--pairs", "3", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result["pairs"] == 3 and result["success"] == 100.0
+    assert result["table3"] == {"system": 100.0, "transitions": 100.0, "vfm": 100.0, "apn": 100.0}
