@@ -41,7 +41,13 @@ def cmd_up(args: argparse.Namespace) -> int:
     from services.stack import StackConfig, run_up
 
     models = tuple(args.model) if args.model else shipped_models()
-    config = StackConfig(host=args.host, port=args.port, zenoh_port=args.zenoh_port, models=models)
+    config = StackConfig(
+        host=args.host,
+        port=args.port,
+        zenoh_port=args.zenoh_port,
+        models=models,
+        zenoh_access=args.zenoh_access,
+    )
     return run_up(config)
 
 
@@ -75,5 +81,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=Path,
         action="append",
         help="a model folder to serve, once per task (default: every shipped model)",
+    )
+    up.add_argument(
+        "--zenoh-access",
+        type=Path,
+        help="a folder written by python -m shared.zenoh_access: run the bus under its access "
+        "control, each process with its role's credentials (default: an open loopback bus)",
     )
     up.set_defaults(handler=cmd_up)

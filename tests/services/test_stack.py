@@ -450,8 +450,9 @@ def children_of(pid: int) -> list[int]:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_lsr_up_starts_everything_and_a_signal_stops_it_all(sig):
+def test_lsr_up_starts_everything_and_a_signal_stops_it_all(sig, access):
     port, zenoh_port = free_port(), free_port()
+    secure = ["--zenoh-access", str(access)] if sig == signal.SIGTERM else []  # both ways
     up = subprocess.Popen(
         [
             sys.executable,
@@ -464,6 +465,7 @@ def test_lsr_up_starts_everything_and_a_signal_stops_it_all(sig):
             str(zenoh_port),
             "--model",
             str(MODEL),
+            *secure,
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -477,6 +479,10 @@ def test_lsr_up_starts_everything_and_a_signal_stops_it_all(sig):
         children = children_of(up.pid)
         assert len(children) == 6  # router, four services, gateway
         assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=10).status_code == 200
+        if secure:  # the bus runs under access control: no credentials, no session
+            with pytest.raises(ConnectionError):
+                endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+                open_session(BusConfig(connect=[endpoint], open_timeout_s=1))
         up.send_signal(sig)
         assert up.wait(30) == 0
         for child in children:
