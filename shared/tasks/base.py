@@ -41,6 +41,22 @@ class IllegalActionError(TaskError):
     """A well-formed action that breaks a rule of the task in the given state."""
 
 
+def parse_row_col(obj: Any, field: str, rows: int, cols: int) -> tuple[int, int]:
+    """`{"row": R, "col": C}` with 0 <= R < rows and 0 <= C < cols (a grid cell or a pixel);
+    InvalidActionError naming `field` and the coordinate otherwise."""
+    if not isinstance(obj, dict) or set(obj) != {"row", "col"}:
+        raise InvalidActionError(f"{field}: expected an object with 'row' and 'col'")
+    values = []
+    for coord, limit in (("row", rows), ("col", cols)):
+        v = obj[coord]
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise InvalidActionError(f"{field}.{coord}: expected an integer")
+        if not 0 <= v < limit:
+            raise InvalidActionError(f"{field}.{coord}: {v} is out of range 0..{limit - 1}")
+        values.append(v)
+    return values[0], values[1]
+
+
 class WorldError(RuntimeError):
     """The physical world reached something it cannot read back as a valid state."""
 

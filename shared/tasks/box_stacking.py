@@ -18,6 +18,7 @@ from shared.tasks.base import (
     InvalidActionError,
     InvalidStateError,
     Task,
+    parse_row_col,
 )
 from shared.tasks.spec import ArraySpec, TaskSpec
 
@@ -132,23 +133,12 @@ class BoxStacking(Task[Stacks, Move]):
     def parse_action(self, obj: Any) -> Move:
         if not isinstance(obj, dict):
             raise InvalidActionError("action: expected an object with 'pick' and 'release'")
-        cells = []
-        for key in ("pick", "release"):
-            cell = obj.get(key)
-            if not isinstance(cell, dict):
-                raise InvalidActionError(f"action.{key}: expected an object with 'row' and 'col'")
-            values = []
-            for coord, limit in (("row", self.config.levels), ("col", self.config.columns)):
-                v = cell.get(coord)
-                if isinstance(v, bool) or not isinstance(v, int):
-                    raise InvalidActionError(f"action.{key}.{coord}: expected an integer")
-                if not 0 <= v < limit:
-                    raise InvalidActionError(
-                        f"action.{key}.{coord}: {v} is out of range 0..{limit - 1}"
-                    )
-                values.append(v)
-            cells.append(Cell(*values))
-        return Move(*cells)
+        c = self.config
+        pick, release = (
+            Cell(*parse_row_col(obj.get(key), f"action.{key}", c.levels, c.columns))
+            for key in ("pick", "release")
+        )
+        return Move(pick, release)
 
     def action_to_json(self, action: Move) -> dict[str, Any]:
         return {

@@ -19,7 +19,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from shared.tasks.base import IllegalActionError, InvalidActionError, InvalidStateError, Task
+from shared.tasks.base import (
+    IllegalActionError,
+    InvalidActionError,
+    InvalidStateError,
+    Task,
+    parse_row_col,
+)
 from shared.tasks.spec import ArraySpec, TaskSpec
 
 Folds = tuple[str, ...]  # folded corners, in the order of `ClothFoldingConfig.corners`
@@ -207,28 +213,16 @@ class ClothFolding(Task[Folds, ClothAction]):
         if extra:
             raise InvalidActionError(f"action: unknown key {extra[0]!r}")
         frame = self.config.frame
-        pixels = []
-        for key in ("pick", "release"):
-            cell = obj.get(key)
-            if not isinstance(cell, dict) or set(cell) != {"row", "col"}:
-                raise InvalidActionError(f"action.{key}: expected an object with 'row' and 'col'")
-            values = []
-            for coord in ("row", "col"):
-                v = cell[coord]
-                if isinstance(v, bool) or not isinstance(v, int):
-                    raise InvalidActionError(f"action.{key}.{coord}: expected an integer pixel")
-                if not 0 <= v < frame:
-                    raise InvalidActionError(
-                        f"action.{key}.{coord}: {v} is outside the {frame} x {frame} frame"
-                    )
-                values.append(v)
-            pixels.append(Pixel(*values))
+        pick, release = (
+            Pixel(*parse_row_col(obj.get(key), f"action.{key}", frame, frame))
+            for key in ("pick", "release")
+        )
         height = obj.get("height")
         if isinstance(height, bool) or height not in (0, 1):
             raise InvalidActionError(
                 f"action.height: expected 0 (table) or 1 (top layer), got {height!r}"
             )
-        return ClothAction(pixels[0], pixels[1], int(height))
+        return ClothAction(pick, release, int(height))
 
     def action_to_json(self, action: ClothAction) -> dict[str, Any]:
         return {

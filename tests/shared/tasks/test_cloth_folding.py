@@ -69,8 +69,8 @@ GOOD = {"pick": {"row": 48, "col": 48}, "release": {"row": 128, "col": 128}, "he
 @pytest.mark.parametrize(
     ("patch", "message"),
     [
-        ({"pick": {"row": 256, "col": 3}}, r"action.pick.row: 256 is outside the 256 x 256 frame"),
-        ({"release": {"row": 3, "col": -1}}, "action.release.col: -1 is outside"),
+        ({"pick": {"row": 256, "col": 3}}, r"action.pick.row: 256 is out of range 0..255"),
+        ({"release": {"row": 3, "col": -1}}, "action.release.col: -1 is out of range"),
         ({"release": {"row": 3.5, "col": 1}}, "action.release.row: expected an integer"),
         ({"height": 2}, r"action.height: expected 0 \(table\) or 1 \(top layer\), got 2"),
         ({"height": True}, "action.height"),
