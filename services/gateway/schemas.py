@@ -89,7 +89,9 @@ class ExecuteStep(BaseModel):
 class ExecuteResponse(BaseModel):
     success: bool
     reason: str
-    final_state: dict[str, Any]
+    final_state: dict[str, Any] | None = Field(
+        description="the simulator's state at the end; null when it reads as no valid state"
+    )
     steps: list[ExecuteStep]
 
 

@@ -29,7 +29,7 @@ class Planner(Protocol):
 class Episode:
     success: bool
     reason: str  # "goal", "unreachable", "planner_at_goal", "illegal_action", "max_steps", ...
-    final_state: Any
+    final_state: Any  # None when the world reads as no valid state at the end
     actions: list[Any] = field(default_factory=list)
     images: list[np.ndarray] = field(default_factory=list)  # observed after each action
     illegal_actions: int = 0
@@ -92,7 +92,10 @@ def run_episode(
         episode.images.append(world.render())
         if on_step is not None:
             on_step(len(episode.actions), plan.actions[0], state)
-    episode.final_state = world.read_state()
+    try:
+        episode.final_state = world.read_state()
+    except WorldError:  # the action left the world in no valid state (a wrecked cloth, say)
+        episode.final_state = None
     episode.success = goal is not None and episode.final_state == goal
     if goal is None:
         episode.success = episode.reason == "planner_at_goal"

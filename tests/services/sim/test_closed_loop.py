@@ -6,6 +6,7 @@ import pytest
 from services.planner.action_plans import ActionPlanner
 from services.sim.closed_loop import evaluate_system, optimal_moves, run_episode
 from shared.plans import VisualActionPlan
+from shared.tasks.base import WorldError
 from shared.tasks.box_stacking import Cell, Move
 
 SHIPPED = Path(__file__).resolve().parents[3] / "models" / "box_stacking"
@@ -143,3 +144,28 @@ def test_table3_counts_right_plans_and_wrong_actions(world):
     liar = run(lie=True)
     assert liar["table3"]["vfm"] == 100.0  # the visual plans are right ...
     assert liar["table3"]["apn"] < 100.0  # ... their first actions are not
+
+
+class WreckingWorld(SeeingWorld):
+    """Its first action wrecks it: the action fails and nothing reads as a state afterwards."""
+
+    wrecked = False
+
+    def execute(self, action, rng):
+        self.wrecked = True
+        raise WorldError("the cloth matches no state")
+
+    def read_state(self):
+        if self.wrecked:
+            raise WorldError("the cloth matches no state")
+        return self.world.read_state()
+
+
+def test_a_world_left_in_no_state_ends_the_episode_without_a_crash(world):
+    start = state(world, [["red", "green"], ["blue"], ["yellow"]])
+    goal = state(world, [["red"], ["green", "blue"], ["yellow"]])
+    move = VisualActionPlan([0, 1], [], [Move(Cell(1, 0), Cell(1, 1))], [1.0])
+    episode = run_episode(FixedPlanner([move]), WreckingWorld(world), start, goal,
+                          np.random.default_rng(0))  # fmt: skip
+    assert episode.reason.startswith("physics:") and episode.final_state is None
+    assert not episode.success
