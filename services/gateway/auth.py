@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import json
 import re
 import secrets
 import sys
@@ -20,6 +19,8 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from starlette.types import ASGIApp, Receive, Scope, Send
+
+from services.gateway.middleware import send_json
 
 DIGEST = re.compile(r"^(?:sha256:)?([0-9a-f]{64})$")
 OPEN_PATHS = frozenset({"/health"})  # for load balancers and `lsr ping`-like checks
@@ -73,14 +74,7 @@ class ApiKeys:
         if self.accepts(dict(scope["headers"]).get(b"authorization")):
             return await self.app(scope, receive, send)
         detail = "a valid API key is required: Authorization: Bearer KEY"
-        body = json.dumps({"detail": detail}).encode()
-        headers = [
-            (b"content-type", b"application/json"),
-            (b"content-length", b"%d" % len(body)),
-            (b"www-authenticate", b'Bearer realm="lsr"'),
-        ]
-        await send({"type": "http.response.start", "status": 401, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        await send_json(send, 401, detail, [(b"www-authenticate", b'Bearer realm="lsr"')])
 
 
 def main(argv: list[str]) -> int:

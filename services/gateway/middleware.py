@@ -20,6 +20,21 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.gateway.inputs import BodyError, error_detail, parse_json
 
+
+async def send_json(
+    send: Send, status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()
+) -> None:
+    """A `{"detail": ...}` JSON reply sent by ASGI middleware, before or instead of the app."""
+    body = json.dumps({"detail": detail}).encode()
+    head = [
+        (b"content-type", b"application/json"),
+        (b"content-length", b"%d" % len(body)),
+        *headers,
+    ]
+    await send({"type": "http.response.start", "status": status, "headers": head})
+    await send({"type": "http.response.body", "body": body})
+
+
 ARRIVED = "lsr.arrived"  # scope key: when Admission first saw the request (time.monotonic())
 
 
@@ -119,14 +134,8 @@ class BodyLimit:
         await self.app(scope, limited, unless_refused)
 
     async def _refuse(self, send: Send, status: int, detail: str) -> None:
-        body = json.dumps({"detail": detail}).encode()
-        headers = [
-            (b"content-type", b"application/json"),
-            (b"content-length", b"%d" % len(body)),
-            (b"connection", b"close"),  # the rest of the body is never read
-        ]
-        await send({"type": "http.response.start", "status": status, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        # connection: close, as the rest of the body is never read
+        await send_json(send, status, detail, [(b"connection", b"close")])
 
 
 class Admission:
@@ -187,11 +196,4 @@ class Admission:
 
     async def _overloaded(self, send: Send) -> None:
         detail = f"gateway overloaded: {self.limit} requests in progress, {self.waiting} waiting"
-        body = json.dumps({"detail": detail}).encode()
-        headers = [
-            (b"content-type", b"application/json"),
-            (b"content-length", b"%d" % len(body)),
-            (b"retry-after", b"1"),
-        ]
-        await send({"type": "http.response.start", "status": 503, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        await send_json(send, 503, detail, [(b"retry-after", b"1")])

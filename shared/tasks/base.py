@@ -41,6 +41,19 @@ class IllegalActionError(TaskError):
     """A well-formed action that breaks a rule of the task in the given state."""
 
 
+def state_field(obj: Any, key: str, what: str) -> Any:
+    """`obj[key]` of a state object `{key: ...}`, refusing other shapes and unknown keys."""
+    if not isinstance(obj, dict) or key not in obj:
+        got = f" (got keys {sorted(obj, key=str)})" if isinstance(obj, dict) else ""
+        raise InvalidStateError(f"state: expected an object with a '{key}' {what}{got}")
+    extra = sorted(set(obj) - {key}, key=str)
+    if extra:
+        raise InvalidStateError(
+            f"state: unknown key {extra[0]!r}; a state has only '{key}'", key=str(extra[0])
+        )
+    return obj[key]
+
+
 def parse_row_col(obj: Any, field: str, rows: int, cols: int) -> tuple[int, int]:
     """`{"row": R, "col": C}` with 0 <= R < rows and 0 <= C < cols (a grid cell or a pixel);
     InvalidActionError naming `field` and the coordinate otherwise."""

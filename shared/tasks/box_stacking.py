@@ -19,6 +19,7 @@ from shared.tasks.base import (
     InvalidStateError,
     Task,
     parse_row_col,
+    state_field,
 )
 from shared.tasks.spec import ArraySpec, TaskSpec
 
@@ -91,14 +92,7 @@ class BoxStacking(Task[Stacks, Move]):
     # ----- JSON codecs -----
     def parse_state(self, obj: Any) -> Stacks:
         c = self.config
-        if not isinstance(obj, dict) or "stacks" not in obj:
-            raise InvalidStateError("state: expected an object with a 'stacks' list")
-        extra = sorted(set(obj) - {"stacks"}, key=str)
-        if extra:
-            raise InvalidStateError(
-                f"state: unknown key {extra[0]!r}; a state has only 'stacks'", key=str(extra[0])
-            )
-        stacks = obj["stacks"]
+        stacks = state_field(obj, "stacks", "list")
         if not isinstance(stacks, list | tuple):
             raise InvalidStateError("state.stacks: expected a list of columns")
         if len(stacks) != c.columns:

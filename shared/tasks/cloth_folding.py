@@ -25,6 +25,7 @@ from shared.tasks.base import (
     InvalidStateError,
     Task,
     parse_row_col,
+    state_field,
 )
 from shared.tasks.spec import ArraySpec, TaskSpec
 
@@ -179,15 +180,7 @@ class ClothFolding(Task[Folds, ClothAction]):
     # ----- JSON codecs -----
     def parse_state(self, obj: Any) -> Folds:
         corners = self.config.corners
-        if not isinstance(obj, dict) or "folds" not in obj:
-            got = f" (got keys {sorted(obj)})" if isinstance(obj, dict) else ""
-            raise InvalidStateError(f"state: expected an object with a 'folds' list{got}")
-        extra = sorted(set(obj) - {"folds"})
-        if extra:
-            raise InvalidStateError(
-                f"state: unknown key {extra[0]!r}; a state has only 'folds'", key=str(extra[0])
-            )
-        folds = obj["folds"]
+        folds = state_field(obj, "folds", "list")
         if not isinstance(folds, list | tuple):
             raise InvalidStateError("state.folds: expected a list of fold names")
         seen: set[str] = set()
