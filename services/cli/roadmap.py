@@ -13,7 +13,9 @@ def cmd_build_roadmap(args: argparse.Namespace) -> int:
     from services.planner.roadmap import RoadmapConfig
 
     metric = args.metric or default_metric(read_vae_config(args.vae))
-    config = RoadmapConfig(metric=metric, w_eps=args.w_eps, min_samples=args.min_samples)
+    config = RoadmapConfig(
+        metric=metric, w_eps=args.w_eps, min_samples=args.min_samples, eps_rule=args.eps_rule
+    )
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
     return 0
@@ -23,8 +25,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     roadmap = sub.add_parser("build-roadmap", help="build the Latent Space Roadmap of a VAE")
     roadmap.add_argument("--vae", required=True, type=Path)
     roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
-    roadmap.add_argument("--w-eps", type=float, default=1.0)
-    roadmap.add_argument("--min-samples", type=int, default=3)
+    roadmap.add_argument(
+        "--eps-rule",
+        default="stable",
+        choices=["stable", "paper"],
+        help="stable: the cut that keeps the regions unchanged longest (default); "
+        "paper: Algorithm 1's mu0 + w_eps sigma0",
+    )
+    roadmap.add_argument(
+        "--w-eps", type=float, default=1.0, help="w of the paper's rule (and its fallback)"
+    )
+    roadmap.add_argument(
+        "--min-samples",
+        type=int,
+        default=None,
+        help="prune regions with fewer members (default: a tenth of the typical region, >= 1)",
+    )
     roadmap.add_argument(
         "--metric",
         choices=["l1", "l2", "inf"],
