@@ -84,11 +84,12 @@ function showError(err, fallback = "request-error") {
       const named = /\b(start|goal)\.(image|state)\b/.exec(item.msg || "");
       if (named) loc = [named[1], named[2]];
     }
-    const head = FIELD_NAMES[loc[0]];
-    const target = head && $(loc[0] + "-error") ? loc[0] + "-error" : fallback;
-    const where = loc.length ? loc.join(" → ") + ": " : "";
-    const msg = (item.msg || "").replace(/^Value error, /, "");
-    const text = statusWords(err.status) + ". " + (head ? head + " " : "") + where + msg;
+    const target = FIELD_NAMES[loc[0]] && $(loc[0] + "-error") ? loc[0] + "-error" : fallback;
+    const where = loc.length ?
+      [FIELD_NAMES[loc[0]] || loc[0], ...loc.slice(1)].join(" ").replaceAll("_", " ") + ": " : "";
+    let msg = (item.msg || "").replace(/^Value error, /, "");
+    if (loc.length && msg.startsWith(loc.join(".") + ": ")) msg = msg.slice(loc.join(".").length + 2);
+    const text = statusWords(err.status) + ". " + where + msg;
     const slot = $(target);
     slot.textContent = slot.textContent ? slot.textContent + " " + text : text;
   }
@@ -442,7 +443,9 @@ async function execute() {
   }
   const status = $("exec-status");
   const steps = $("exec-steps");
-  steps.replaceChildren();
+  // The observed start first: the first action is drawn on it once it is known.
+  steps.replaceChildren(el("figure", { class: "step" },
+    frame(start.preview.src, "start", null, null), el("figcaption", { text: "start" })));
   status.className = "muted";
   status.textContent = "Running in the simulator…";
   $("execute-btn").disabled = true;
@@ -526,9 +529,15 @@ async function pollHealth() {
     pill.textContent = body.status === "ok" ? "all services up" :
       body.status === "inconsistent" ? "services serve different models" : (body.detail || "unavailable");
     list.replaceChildren(...Object.entries(body.services).map(([name, s]) => {
-      const models = [...new Set(s.instances.map((i) => `${i.task}:${i.model_id.slice(0, 8)}`))];
-      const text = `${name} ${s.status === "ok" ? "up" : "DOWN"} · ${s.instances.length} ` +
-        `replica${s.instances.length === 1 ? "" : "s"}` + (models.length ? ` · ${models.join(", ")}` : "");
+      const perTask = new Map();  // task -> [replicas, model ids]
+      for (const i of s.instances) {
+        const [count, models] = perTask.get(i.task) || [0, new Set()];
+        perTask.set(i.task, [count + 1, models.add(i.model_id.slice(0, 8))]);
+      }
+      const tasks = [...perTask].map(([task, [count, models]]) =>
+        `${task} ×${count} (model ${[...models].join("/")})`);
+      const text = `${name} ${s.status === "ok" ? "up" : "DOWN"}` +
+        (tasks.length ? ": " + tasks.join(", ") : ": no replica");
       return el("li", { class: s.status === "ok" ? "" : "down", text, "data-service": name });
     }));
   } catch (err) {
