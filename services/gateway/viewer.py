@@ -15,6 +15,7 @@ Kept apart from the API routes of `app.py`, so that nothing here sits on the pat
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import threading
 import time
@@ -55,6 +56,7 @@ from shared.tasks import get_task
 from shared.tasks.base import TaskError
 from shared.validation import FieldError, parse_state
 
+log = logging.getLogger(__name__)
 STATIC = Path(__file__).resolve().parent / "static"
 UI_PREFIX = "/ui/"
 
@@ -228,19 +230,23 @@ class Viewer:
         )
 
     def execute_events(self, body: ExecuteRequest) -> Iterator[str]:
-        """Server-sent events of one episode: `step` per action, then `done` (or `error`)."""
+        """Server-sent events of one episode: `step` per action, then `done` (or `error`).
+
+        The input is checked now, before any event, so that bad input gets a 4xx reply."""
         run_id = uuid.uuid4().hex
-        run = self.run_request(body, run_id)
+        return self._episode(body, self.run_request(body, run_id), run_id)
+
+    def _episode(self, body: ExecuteRequest, run: RunRequest, run_id: str) -> Iterator[str]:
+        from services.gateway.app import error_body  # app imports this module
+
         events: queue.Queue[tuple[str, Any]] = queue.Queue()
-        session = self.gateway.session
 
         def heard(sample: zenoh.Sample) -> None:
             try:
                 events.put(("step", unpack(sample.payload.to_bytes(), RunStep)))
-            except Exception as exc:  # an unreadable step is reported, the run goes on
-                events.put(("bad", exc))
+            except Exception:  # unreadable: the final reply still carries the step
+                return
 
-        subscriber = session.declare_subscriber(progress_key(body.task, run_id), heard)
         settings = self.gateway.settings
         deadline_s = settings.deadline_s + settings.execute_step_s * body.max_steps
 
@@ -250,16 +256,11 @@ class Viewer:
             except Exception as exc:
                 events.put(("failed", exc))
 
-        return self._stream(events, subscriber, run_episode)
-
-    def _stream(
-        self, events: queue.Queue[tuple[str, Any]], subscriber: Any, run_episode: Any
-    ) -> Iterator[str]:
-        from services.gateway.app import error_body  # app imports this module
-
-        threading.Thread(target=run_episode, name="execute-stream", daemon=True).start()
-        sent = 0
+        # Declared before the query is sent (one session, in order), so no step goes unheard.
+        subscriber = self.gateway.session.declare_subscriber(progress_key(body.task, run_id), heard)
         try:
+            threading.Thread(target=run_episode, name="execute-stream", daemon=True).start()
+            sent = 0
             yield sse("started", {})
             while True:
                 kind, item = events.get()
@@ -269,22 +270,21 @@ class Viewer:
                 elif kind == "done":
                     reply: RunReply = item
                     images = reply.images.numpy()
-                    for step in range(sent, len(reply.actions)):  # any the bus has not brought
-                        yield sse(
-                            "step", step_json(step + 1, reply.actions[step], None, images[step])
-                        )
-                    yield sse(
-                        "done",
-                        {
-                            "success": reply.success,
-                            "reason": reply.reason,
-                            "final_state": reply.final_state,
-                            "steps": len(reply.actions),
-                        },
-                    )
+                    for i in range(sent, len(reply.actions)):  # any the bus has not brought
+                        yield sse("step", step_json(i + 1, reply.actions[i], None, images[i]))
+                    outcome = {
+                        "success": reply.success,
+                        "reason": reply.reason,
+                        "final_state": reply.final_state,
+                        "steps": len(reply.actions),
+                    }
+                    yield sse("done", outcome)
                     return
                 elif kind == "failed":
-                    status, detail = error_body(item) or (500, "internal error")
+                    known = error_body(item)
+                    if known is None:
+                        log.error("/execute/stream failed", exc_info=item)
+                    status, detail = known or (500, "internal error")
                     yield sse("error", {"status": status, "detail": detail})
                     return
         finally:
