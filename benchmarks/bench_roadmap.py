@@ -93,7 +93,7 @@ def reference_like(n_points: int, seed: int) -> tuple[np.ndarray, np.ndarray, np
     rng = np.random.default_rng(seed)
     data = np.load(REFERENCE)
     z1, z2, act = data["z1"], data["z2"], data["action"]
-    ref = build_roadmap(z1, z2, act, RoadmapConfig(metric="l1"))
+    ref = build_roadmap(z1, z2, act, RoadmapConfig(metric="l1", min_samples=3, eps_rule="paper"))
     points = np.empty((2 * len(z1), DIM), dtype=np.float64)
     points[0::2], points[1::2] = z1, z2
     centres, spread = [], []
@@ -147,8 +147,14 @@ def main() -> None:
     )
     parser.add_argument("--metric", choices=["l1", "l2", "inf"], default="l1")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--eps-rule",
+        choices=["paper", "stable"],
+        default="paper",
+        help="paper: one phase 2 (Algorithm 1); stable: the default builder's scan of epsilon",
+    )
     args = parser.parse_args()
-    config = RoadmapConfig(metric=args.metric)
+    config = RoadmapConfig(metric=args.metric, min_samples=3, eps_rule=args.eps_rule)
     have_reference = REFERENCE.is_file()
 
     if have_reference:

@@ -70,10 +70,11 @@ def run_size(args: argparse.Namespace, pairs: int, test: Path) -> dict[str, Any]
     )  # fmt: skip
     stage(
         "vae",
-        ["train", "vae", "--data", str(data), "--metric", "l1", "--out", str(model / "vae")],
+        ["train", "vae", "--data", str(data), "--metric", "l1", "--out", str(model / "vae"),
+         "--threads", str(args.threads)],
         model / "vae" / "config.json",
         times,
-    )
+    )  # fmt: skip
     out = stage(
         "roadmap",
         ["build-roadmap", "--vae", str(model / "vae"), "--data", str(data),
@@ -95,6 +96,7 @@ def run_size(args: argparse.Namespace, pairs: int, test: Path) -> dict[str, Any]
     if "table1" not in record:
         out = stage("eval_vfm", [*evaluate, "--model", str(model)], run / "-", times)
         record["table1"] = last_json(out)
+        record_path.write_text(json.dumps(record, indent=1))
     paper = run / "paper"
     if "table1_paper_rule" not in record:
         paper.mkdir(exist_ok=True)
@@ -110,6 +112,7 @@ def run_size(args: argparse.Namespace, pairs: int, test: Path) -> dict[str, Any]
         )  # fmt: skip
         out = stage("eval_vfm_paper", [*evaluate, "--model", str(paper)], run / "-", times)
         record["table1_paper_rule"] = last_json(out)
+        record_path.write_text(json.dumps(record, indent=1))
     if args.closed_loop and "closed_loop" not in record:
         out = stage("closed_loop", ["eval", "system", "--model", str(model), "--pairs",
                                     str(args.closed_loop), "--json"], run / "-", times)  # fmt: skip
@@ -134,7 +137,7 @@ def row(pairs: int, record: dict[str, Any]) -> dict[str, Any]:
         "detour_ratio": t1.get("detour_ratio"),
         "paper_rule_all_any_trans": [paper["all"], paper["any"], paper["trans"]],
         "paper_rule_nodes_edges": [paper["nodes"], paper["edges"]],
-        "closed_loop_success": loop.get("success_rate"),
+        "closed_loop_success": loop.get("success"),
         "closed_loop_steps_over_optimal": loop.get("steps_over_optimal"),
         "vae_cpu_minutes": times["vae"]["cpu"] / 60 if "vae" in times else None,
         "pipeline_cpu_minutes": sum(times[s]["cpu"] for s in pipeline if s in times) / 60,
@@ -190,6 +193,7 @@ def main() -> None:
     parser.add_argument("--test", type=Path, help="test set (default: generated, 1000 tuples)")
     parser.add_argument("--test-pairs", type=int, default=1000)
     parser.add_argument("--closed-loop", type=int, default=200, help="closed-loop tasks (0: none)")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads of the VAE run")
     parser.add_argument("--out", type=Path, default=Path("runs/sweep"))
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()

@@ -38,6 +38,7 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         lr_drop=lr_drop,
         beta_max=args.beta_max,
+        clip_grad_norm=args.clip_grad_norm,
         action_on=args.action_on,
         seed=args.seed,
         threads=args.threads,
@@ -100,6 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     vae.add_argument("--lr-drop-epoch", type=int, help="with --epochs: the epoch of the lr drop")
     vae.add_argument("--beta-max", type=float, default=1.0)
+    vae.add_argument(
+        "--clip-grad-norm", type=float, default=1000.0, help="inf: no clipping (the shipped models)"
+    )
     vae.add_argument(
         "--action-on",
         default="sample",
