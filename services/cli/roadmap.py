@@ -8,12 +8,22 @@ from pathlib import Path
 
 
 def cmd_build_roadmap(args: argparse.Namespace) -> int:
+    from services.cli.common import dataset_setting
     from services.encoder.checkpoint import read_vae_config
     from services.planner.build import build_from_dataset, default_metric
     from services.planner.roadmap import RoadmapConfig
 
     metric = args.metric or default_metric(read_vae_config(args.vae))
-    config = RoadmapConfig(metric=metric, w_eps=args.w_eps, min_samples=args.min_samples)
+    # Flags first, then the dataset's task.json settings, then the paper's rules (w 1, 3).
+    w_eps = args.w_eps if args.w_eps is not None else dataset_setting(args.data, "w_eps")
+    min_samples = args.min_samples
+    if min_samples is None:
+        min_samples = dataset_setting(args.data, "min_samples")
+    config = RoadmapConfig(
+        metric=metric,
+        w_eps=1.0 if w_eps is None else float(w_eps),
+        min_samples=3 if min_samples is None else int(min_samples),
+    )
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
     return 0
@@ -23,8 +33,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     roadmap = sub.add_parser("build-roadmap", help="build the Latent Space Roadmap of a VAE")
     roadmap.add_argument("--vae", required=True, type=Path)
     roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
-    roadmap.add_argument("--w-eps", type=float, default=1.0)
-    roadmap.add_argument("--min-samples", type=int, default=3)
+    roadmap.add_argument(
+        "--w-eps", type=float, help="default: the dataset's task.json settings.w_eps, else 1"
+    )
+    roadmap.add_argument(
+        "--min-samples",
+        type=int,
+        help="prune regions under this many points; default: task.json's settings, else 3",
+    )
     roadmap.add_argument(
         "--metric",
         choices=["l1", "l2", "inf"],
