@@ -46,8 +46,8 @@ def cmd_data_import(args: argparse.Namespace) -> int:
     if result["resized"]:
         print(
             f"resized {result['resized']} of {result['images']} images to "
-            f"{result['image_size']} px (centre crop, aspect kept); sizes found: "
-            f"{result['image_sizes']}"
+            f"{result['image_size']} px; {result['cropped']} not square were centre-cropped "
+            f"first (aspect kept); sizes found: {result['image_sizes']}"
         )
     if result["own_episodes"]:
         print("rows without an episode are each their own episode for the split")

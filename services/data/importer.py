@@ -59,7 +59,8 @@ class Checked:
     rows: int = 0
     action_pairs: int = 0
     images: int = 0  # distinct image files
-    resized: int = 0  # of them, not of the declared size (centre-cropped and resized)
+    resized: int = 0  # of them, not of the declared size (resized)
+    cropped: int = 0  # of them, not square (centre-cropped first: the aspect is kept)
     sizes: Counter = field(default_factory=Counter)
     episodes: dict[str, int] = field(default_factory=dict)  # name -> index, first-seen order
     row_episode: list[int] = field(default_factory=list)  # per row: its episode's index
@@ -143,6 +144,7 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
                 shape = image.shape[:2]
                 found.sizes[f"{shape[1]}x{shape[0]}"] += 1
                 found.resized += shape != (size, size)
+                found.cropped += shape[0] != shape[1]
                 checked_images.add(path)
             paths.append(path)
         if row.action is not None:
@@ -233,6 +235,7 @@ def import_dataset(cfg: ImportConfig, progress: bool = True) -> dict[str, Any]:
         "images": found.images,
         "image_sizes": dict(found.sizes),
         "resized": found.resized,
+        "cropped": found.cropped,
         "image_size": found.declaration.image_size,
         "episodes": len(found.episodes),
         "own_episodes": found.own_episodes,
