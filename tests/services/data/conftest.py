@@ -84,3 +84,8 @@ def write_recorded(
 @pytest.fixture
 def recorded(tmp_path) -> Path:
     return write_recorded(tmp_path / "recorded")
+
+
+@pytest.fixture(scope="session")
+def write_recorded_fn():
+    return write_recorded
