@@ -81,6 +81,7 @@ def test_plans_in_process_carry_the_declared_fields(data_model, tmp_path):
     assert "plans" in json.loads((out / "plans.json").read_text())
     assert main(["plan", "--model", str(model), "--start-state", "{}",
                  "--goal-image", str(start), "--out", str(out)]) == 2  # fmt: skip
+    assert main(["eval", "system", "--model", str(model), "--pairs", "1"]) == 2
 
 
 @pytest.fixture(scope="module")
