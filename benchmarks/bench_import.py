@@ -101,18 +101,20 @@ def measure(source: Path, out: Path) -> dict:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--tuples", type=int, action="append")
+    parser.add_argument(
+        "--keep", type=Path, help="write the JPEGs under this folder and reuse them next time"
+    )
     args = parser.parse_args()
     sizes = args.tuples or [1000, 5000]
-    rows = []
     for tuples in sizes:
         with tempfile.TemporaryDirectory() as tmp:
-            source = Path(tmp) / "recorded"
+            source = (args.keep or Path(tmp)) / f"recorded-{tuples}"
             started = time.perf_counter()
-            write_recorded(source, tuples)
+            if not (source / "pairs.jsonl").is_file():
+                write_recorded(source, tuples)
             written = time.perf_counter() - started
             row = measure(source, Path(tmp) / "imported")
             row["write_jpegs_seconds"] = round(written, 1)
-            rows.append(row)
             print(json.dumps(row), flush=True)
     return 0
 

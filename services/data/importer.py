@@ -10,6 +10,7 @@ ids), never the images.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import shutil
 import time
@@ -101,7 +102,7 @@ def _image_path(source: Path, where: str, key: str, relative: str) -> Path:
 def load_image(path: Path, size: int) -> tuple[np.ndarray, bool]:
     """The image as uint8 (size, size, 3), and whether it had to be cropped and resized."""
     try:
-        image = decode_image(path.read_bytes())
+        image = decode_image(path.read_bytes(), at_least=size)
     except OSError as exc:
         raise ImageError(f"cannot be read ({exc.strerror or exc})") from None
     h, w = image.shape[:2]
@@ -112,6 +113,19 @@ def load_image(path: Path, size: int) -> tuple[np.ndarray, bool]:
     square = Image.fromarray(image[top : top + side, left : left + side])
     resized = square.resize((size, size), Image.Resampling.LANCZOS, reducing_gap=None)
     return np.asarray(resized, dtype=np.uint8), True
+
+
+def _checked_size(path: Path, size: int) -> tuple[int, int]:
+    """The image's (width, height), after decoding all of it (a truncated file fails here;
+    a JPEG is scaled in the decoder, which still reads every byte)."""
+    data = path.read_bytes()
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            original = img.size
+    except Exception as exc:
+        raise ImageError(f"not a readable PNG or JPEG image ({exc})") from None
+    decode_image(data, at_least=size)
+    return original
 
 
 def check(cfg: ImportConfig, progress: bool = True) -> Checked:
@@ -138,13 +152,12 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
                 raise DataImportError(f"{where}: {key}: {relative} does not exist")
             if path not in checked_images:
                 try:
-                    image = decode_image(path.read_bytes())
+                    w, h = _checked_size(path, size)
                 except (ImageError, OSError) as exc:
                     raise DataImportError(f"{where}: {key}: {relative}: {exc}") from None
-                shape = image.shape[:2]
-                found.sizes[f"{shape[1]}x{shape[0]}"] += 1
-                found.resized += shape != (size, size)
-                found.cropped += shape[0] != shape[1]
+                found.sizes[f"{w}x{h}"] += 1
+                found.resized += (w, h) != (size, size)
+                found.cropped += w != h
                 checked_images.add(path)
             paths.append(path)
         if row.action is not None:
