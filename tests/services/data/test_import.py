@@ -211,3 +211,18 @@ def test_an_existing_output_is_kept(recorded, tmp_path):
     with pytest.raises(FileExistsError, match="--overwrite"):
         import_dataset(ImportConfig(recorded, out), progress=False)
     assert (out / "train" / "keep.txt").read_text() == "mine"
+
+
+def test_a_large_jpeg_is_scaled_and_counted(recorded, tmp_path):
+    lines = rows(recorded)
+    big = np.zeros((256, 320, 3), np.uint8) + np.array([200, 60, 60], np.uint8)
+    big[32:96, 32 + 32 : 96 + 32] = 255  # the square of state 0, at 256 / 48 times the size
+    Image.fromarray(big).save(recorded / "big.jpg", quality=95)
+    lines[0]["image1"] = "big.jpg"
+    write_rows(recorded, lines)
+    result = import_dataset(ImportConfig(recorded, tmp_path / "out", test_fraction=0), False)
+    assert result["image_sizes"]["320x256"] == 1 and result["cropped"] == 29
+    image = load_dataset(tmp_path / "out" / "train").image1[0].astype(int)
+    assert image.shape == (32, 32, 3)
+    bright = (image > 220).all(-1)
+    assert bright[4:12, 4:12].all() and not bright[20:, 20:].any()  # the square, top left
