@@ -5,6 +5,7 @@ Key layout (documented in docs/services.md):
   lsr/alive/{service}/{instance}     liveliness tokens
   lsr/api/plan                       the public planning queryable (JSON, served by the gateway)
   lsr/robot/{robot_id}/plan          plans published for robots (JSON)
+  lsr/sim/{task}/progress/{run_id}   steps of a running episode, published by the sim (msgpack)
 """
 
 from __future__ import annotations
@@ -67,6 +68,11 @@ def robot_plan_key(robot_id: str) -> str:
 
 
 API_PLAN_KEY = "lsr/api/plan"
+
+
+def progress_key(task: str, run_id: str) -> str:
+    """Where the sim publishes the steps of a running episode (`RunRequest.progress`)."""
+    return f"lsr/sim/{task}/progress/{run_id}"
 
 
 def host_id() -> str:

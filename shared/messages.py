@@ -104,6 +104,19 @@ class PathsReply(Message):
     reason: str | None = None  # why `paths` is empty
 
 
+class GraphRequest(TaskMessage):
+    """The whole roadmap, for pictures of it (the plan viewer); nothing plans with this."""
+
+
+class GraphReply(Message):
+    node_latents: WireArray  # float32 (K, D): node i is row i
+    edges: WireArray  # int64 (E, 2), i < j
+    edge_weights: WireArray  # int64 (E,)
+    states: list[Any] | None = None  # each node's majority true state, when the model knows it
+    purity: list[float] | None = None  # the share of its members in that state
+    model_id: str
+
+
 # apn ----------------------------------------------------------------------------------------
 class ProposeRequest(TaskMessage):
     z_from: WireArray  # float32 (M, D)
@@ -125,8 +138,15 @@ class RenderReply(Message):
     images: WireArray
 
 
+PROGRESS_ID_PATTERN = r"^[0-9a-f]{32}$"  # one key chunk, chosen by the caller (a uuid4 hex)
+
+
 class RunRequest(TaskMessage):
-    """A closed-loop episode in the sim's physics, planning through the other services."""
+    """A closed-loop episode in the sim's physics, planning through the other services.
+
+    With `progress`, every executed step is also published as a `RunStep` on
+    `shared.bus.progress_key(task, progress)` while the episode runs (for streaming clients).
+    """
 
     start: Any  # state JSON
     goal_state: Any | None = None
@@ -134,6 +154,27 @@ class RunRequest(TaskMessage):
     max_steps: int = Field(20, ge=1, le=200)
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
     seed: int = Field(0, ge=0, lt=2**63)
+    progress: str | None = Field(None, pattern=PROGRESS_ID_PATTERN)
+
+
+class RunStep(Message):
+    """One executed action of a running episode, as it happens."""
+
+    step: int  # 1 for the first action
+    action: dict[str, Any]
+    state: Any  # the state the sim reads after it
+    image: WireArray  # uint8 (H, W, 3): what the camera sees after it
+
+
+class PixelsRequest(TaskMessage):
+    """Where actions act in the model's images (pick and release marks for pictures)."""
+
+    actions: list[Any] = Field(min_length=1, max_length=256)  # the task's action JSON
+
+
+class PixelsReply(Message):
+    pixels: WireArray  # float32 (N, 4): pick x, y, release x, y in pixels (x right, y down)
+    image_size: int
 
 
 class RunReply(Message):

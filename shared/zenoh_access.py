@@ -6,6 +6,8 @@ access-control rules, denying by default:
   liveliness token only under its own keys (`lsr/{service}/**`, `lsr/alive/{service}/**`);
 - the gateway and the sim may query the services and watch their tokens; the gateway alone
   serves `lsr/api/plan` and publishes on `lsr/robot/**`;
+- the sim publishes the steps of running episodes (`lsr/sim/*/progress/*`), which only the
+  gateway may subscribe to;
 - a robot may query `lsr/api/plan` and the encoder's info keys (its image size), and subscribe
   to its own `lsr/robot/{robot_id}/plan` only;
 - a monitor (`lsr ping` from outside, dashboards, tests) may watch tokens, ask every info key,
@@ -33,6 +35,7 @@ from pathlib import Path
 
 SERVICE_ROLES = ("encoder", "planner", "apn", "sim")
 BOTH = ["ingress", "egress"]
+PROGRESS_KEYS = "lsr/sim/*/progress/*"  # `shared.bus.progress_key`
 # A robot's user name embeds its id, and the dictionary is `user:password` lines.
 ACL_ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
@@ -71,12 +74,19 @@ def access_control(robots: list[str]) -> dict:
         rule("publish-plans", ["put"], ["lsr/robot/**"], ["ingress"]),
         rule("read-all-plans", ["declare_subscriber", "put"], ["lsr/robot/**"]),
         rule("gateway-token", ["liveliness_token"], ["lsr/alive/gateway/**"], ["ingress"]),
+        # Steps of running episodes: the sim publishes them, the gateway streams them on.
+        rule("publish-progress", ["put"], [PROGRESS_KEYS], ["ingress"]),
+        rule("read-progress", ["declare_subscriber", "put"], [PROGRESS_KEYS]),
     ]
     subjects = [{"id": role, "usernames": [role]} for role in (*SERVICE_ROLES, "gateway")]
     subjects.append({"id": "monitor", "usernames": ["monitor"]})
     policies = [
         {"rules": ["ask-services", "watch-tokens", "see-tokens"], "subjects": ["gateway", "sim"]},
-        {"rules": ["serve-api", "publish-plans", "gateway-token"], "subjects": ["gateway"]},
+        {
+            "rules": ["serve-api", "publish-plans", "gateway-token", "read-progress"],
+            "subjects": ["gateway"],
+        },
+        {"rules": ["publish-progress"], "subjects": ["sim"]},
         {
             "rules": ["ask-info", "ask-api", "read-all-plans", "watch-tokens", "see-tokens"],
             "subjects": ["monitor"],

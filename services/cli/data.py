@@ -20,6 +20,7 @@ def cmd_data_generate(args: argparse.Namespace) -> int:
         action_fraction=args.action_fraction,
         workers=args.workers,
         episode_length=args.episode_length,
+        starts=args.starts,
     )
     result = generate(cfg, args.out, overwrite=args.overwrite)
     counts = result["counts"]
@@ -84,6 +85,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         help="tuples walked from one reset (default: the world's, 1 box stacking, 10 cloth)",
+    )
+    gen.add_argument(
+        "--starts",
+        default="balanced",
+        choices=["balanced", "random"],
+        help="episode start states: every state in turn (default) or drawn independently",
     )
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")

@@ -14,7 +14,8 @@ def cmd_build_roadmap(args: argparse.Namespace) -> int:
     from services.planner.roadmap import RoadmapConfig
 
     metric = args.metric or default_metric(read_vae_config(args.vae))
-    # Flags first, then the dataset's task.json settings, then the paper's rules (w 1, 3).
+    # Flags first, then the dataset's task.json settings, then the defaults (w 1; pruning
+    # automatic, as RoadmapConfig's min_samples None).
     w_eps = args.w_eps if args.w_eps is not None else dataset_setting(args.data, "w_eps")
     min_samples = args.min_samples
     if min_samples is None:
@@ -22,7 +23,8 @@ def cmd_build_roadmap(args: argparse.Namespace) -> int:
     config = RoadmapConfig(
         metric=metric,
         w_eps=1.0 if w_eps is None else float(w_eps),
-        min_samples=3 if min_samples is None else int(min_samples),
+        min_samples=None if min_samples is None else int(min_samples),
+        eps_rule=args.eps_rule,
     )
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
@@ -34,12 +36,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     roadmap.add_argument("--vae", required=True, type=Path)
     roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
     roadmap.add_argument(
-        "--w-eps", type=float, help="default: the dataset's task.json settings.w_eps, else 1"
+        "--eps-rule",
+        default="stable",
+        choices=["stable", "paper"],
+        help="stable: the cut that keeps the regions unchanged longest (default); "
+        "paper: Algorithm 1's mu0 + w_eps sigma0",
+    )
+    roadmap.add_argument(
+        "--w-eps",
+        type=float,
+        help="w of the paper's rule (and its fallback); default: task.json's settings, else 1",
     )
     roadmap.add_argument(
         "--min-samples",
         type=int,
-        help="prune regions under this many points; default: task.json's settings, else 3",
+        help="prune regions with fewer members (default: the dataset's task.json settings, "
+        "else a tenth of the typical region, >= 1)",
     )
     roadmap.add_argument(
         "--metric",

@@ -29,12 +29,18 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         dm = dataset_setting(args.data, "d_m")
         if dm is not None:
             print(f"d_m {dm} from the dataset's task.json settings")
+    lr_drop = args.lr_drop
+    if args.lr_drop_epoch is not None:
+        if args.epochs is None:
+            raise ValueError("--lr-drop-epoch needs --epochs; with --steps use --lr-drop")
+        lr_drop = args.lr_drop_epoch / args.epochs
     cfg = TrainConfig(
         metric=args.metric,
         dm=dm,
+        **({"steps": args.steps} if args.steps is not None else {}),
         epochs=args.epochs,
         batch_size=args.batch_size,
-        lr_drop_epoch=args.lr_drop_epoch,
+        lr_drop=lr_drop,
         beta_max=args.beta_max,
         action_on=args.action_on,
         seed=args.seed,
@@ -85,9 +91,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "settings.d_m, else the paper's value",
     )
     vae.add_argument("--baseline", type=Path, help="VAE-b folder, for --dm auto")
-    vae.add_argument("--epochs", type=int, default=30)
+    length = vae.add_mutually_exclusive_group()
+    length.add_argument(
+        "--steps",
+        type=int,
+        help="optimiser steps, whatever the dataset's size "
+        "(default: services.encoder.train.DEFAULT_STEPS, 2400)",
+    )
+    length.add_argument("--epochs", type=int, help="passes over the data instead of --steps")
     vae.add_argument("--batch-size", type=int, default=64)
-    vae.add_argument("--lr-drop-epoch", type=int, default=20)
+    vae.add_argument(
+        "--lr-drop", type=float, default=2 / 3, help="fraction of the run after which lr / 10"
+    )
+    vae.add_argument("--lr-drop-epoch", type=int, help="with --epochs: the epoch of the lr drop")
     vae.add_argument("--beta-max", type=float, default=1.0)
     vae.add_argument(
         "--action-on",

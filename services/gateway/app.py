@@ -34,6 +34,7 @@ from services.gateway.schemas import (
     RenderRequest,
     RenderResponse,
 )
+from services.gateway.viewer import add_viewer
 from shared.bus import (
     API_PLAN_KEY,
     JSON,
@@ -224,12 +225,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:
         return gateway(request).execute(body)
 
+    add_viewer(app)  # the plan viewer at / and the routes only its pictures need
+
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
     # Outermost: a request waiting for admission is not read yet. /execute holds its worker
     # for many seconds, so it has its own, smaller share.
     for paths, limit in [
         (frozenset({"/plan", "/render"}), settings.max_in_flight),
-        (frozenset({"/execute"}), settings.max_executing),
+        (frozenset({"/execute", "/execute/stream"}), settings.max_executing),
     ]:
         app.add_middleware(
             Admission,

@@ -24,6 +24,8 @@ from services.gateway.middleware import send_json
 
 DIGEST = re.compile(r"^(?:sha256:)?([0-9a-f]{64})$")
 OPEN_PATHS = frozenset({"/health"})  # for load balancers and `lsr ping`-like checks
+# The plan viewer's static files hold no data; the page sends the user's key with every call.
+OPEN_PAGES = ("/", "/ui/")
 
 
 def digest(key: str) -> str:
@@ -52,6 +54,10 @@ def load_digests(hashes: str, keys_file: Path | None) -> frozenset[bytes]:
     return found
 
 
+def is_open(path: str) -> bool:
+    return path in OPEN_PATHS or path == OPEN_PAGES[0] or path.startswith(OPEN_PAGES[1])
+
+
 class ApiKeys:
     """401 for every request but OPEN_PATHS without a known bearer key."""
 
@@ -69,7 +75,7 @@ class ApiKeys:
         return any(matches)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["path"] in OPEN_PATHS:
+        if scope["type"] != "http" or is_open(scope["path"]):
             return await self.app(scope, receive, send)
         if self.accepts(dict(scope["headers"]).get(b"authorization")):
             return await self.app(scope, receive, send)

@@ -16,7 +16,7 @@ import numpy as np
 
 from services.planner.roadmap import Roadmap, pair_distances
 from shared.tasks import get_task
-from shared.tasks.base import Task
+from shared.tasks.base import Task, optimal_moves
 
 
 @dataclass
@@ -124,12 +124,14 @@ def evaluate_plans(
             "no_path": len(pairs),
             "truncated_at_max_paths": 0,
             "mean_path_nodes": 0.0,
+            "detour_ratio": None,
         }
     node_states = [task.array_to_state(s) for s in labels.states]
     nearest = np.asarray(roadmap.nearest_node(z_test))
     n_all = n_any = ok_steps = steps = no_path = truncated = 0
     image_hits = image_total = 0
     lengths: list[int] = []
+    detours: list[float] = []  # plan moves / fewest moves, where a plan is correct
     for i, j in pairs:
         start, goal = task.array_to_state(test_states[i]), task.array_to_state(test_states[j])
         paths = roadmap.shortest_paths(int(nearest[i]), int(nearest[j]), max_paths=max_paths)
@@ -141,6 +143,8 @@ def evaluate_plans(
         verdicts = [path_verdict(checker, [node_states[n] for n in p], start, goal) for p in paths]
         n_all += all(v[0] for v in verdicts)
         n_any += any(v[0] for v in verdicts)
+        if any(v[0] for v in verdicts) and start != goal:
+            detours.append((len(paths[0]) - 1) / optimal_moves(task, start, goal))
         ok_steps += sum(v[1] for v in verdicts)
         steps += sum(v[2] for v in verdicts)
         if node_reads is not None:
@@ -157,6 +161,7 @@ def evaluate_plans(
         "no_path": no_path,
         "truncated_at_max_paths": truncated,
         "mean_path_nodes": float(np.mean(lengths)) if lengths else 0.0,
+        "detour_ratio": float(np.mean(detours)) if detours else None,
     }
     if node_reads is not None:
         result["decoded_agreement"] = 100.0 * image_hits / image_total if image_total else 0.0

@@ -8,7 +8,9 @@ pair joins, weighted by the number of such action pairs. Small regions and then 
 are pruned.
 
 Phase 2 is exact (the same partition as comparing every pair of latents) but never compares every
-pair; see `connected_regions`.
+pair; see `services.planner.regions`. Epsilon and the pruning threshold follow the data by default
+(`eps_rule="stable"`, `min_samples=None`), which keeps the roadmap whole with a few images per
+state; `eps_rule="paper"` with `min_samples=3` is Algorithm 1 as written.
 """
 
 from __future__ import annotations
@@ -26,14 +28,34 @@ from safetensors.numpy import load_file, save_file
 from scipy import sparse
 from scipy.sparse.csgraph import shortest_path
 from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
+from services.planner.regions import (
+    Metric,
+    RoadmapError,
+    _check_metric,
+    _distances_to,
+    connected_regions,
+    metric_p,
+    pair_distances,
+    stable_epsilon,
+)
 from shared.checkpoint import replace_atomically, seal
 
-Metric = Literal["l1", "l2", "inf"]
+__all__ = [
+    "Metric",
+    "Roadmap",
+    "RoadmapConfig",
+    "RoadmapError",
+    "build_roadmap",
+    "connected_regions",
+    "metric_p",
+    "pair_distances",
+]
 
-METRICS: tuple[Metric, ...] = ("l1", "l2", "inf")
-_CDIST_NAME: dict[str, str] = {"l1": "cityblock", "l2": "euclidean", "inf": "chebyshev"}
+EpsilonRule = Literal["stable", "paper"]
+EPSILON_RULES: tuple[EpsilonRule, ...] = ("stable", "paper")
+# The automatic pruning threshold: this fraction of the typical point's region size.
+_MIN_SAMPLES_FRACTION = 0.1
 
 FORMAT = "lsr-roadmap"
 FORMAT_VERSION = 1
@@ -41,397 +63,39 @@ JSON_NAME = "roadmap.json"
 ARRAYS_NAME = "roadmap.safetensors"
 _ARRAY_KEYS = ("nodes", "node_sizes", "edges", "edge_weights", "point_node")
 
-# Relative slack added to every bound used to skip work (triangle inequality, projections).
-# Float64 distances and projections of latents are off by about 1e-14 relative, far less, so the
-# bounds stay conservative. Bounds only ever decide what to skip, never what to join.
-_ROUNDING = 1e-9
-_SLACK = 1.0 + _ROUNDING
-# Phase 2 first covers the points with coarse balls of this many epsilons (see connected_regions).
-_COARSE_RADIUS = 2.0
-# Points sampled per round to pick the coarse centres.
-_COARSE_SAMPLE = 4096
-# Entries per temporary distance block: bounds memory at about 32 MB per block.
-_BLOCK = 1 << 22
-# Directions tried to separate two stars before comparing their members pair by pair.
-_DIRECTIONS = 4
-# Entries per block when looking for a single close pair: small, to stop early.
-_SEARCH_BLOCK = 1 << 16
-
-
-class RoadmapError(ValueError):
-    """Bad input to the builder, or a roadmap folder that is missing or malformed."""
-
-
-def metric_p(metric: Metric) -> float:
-    """The Minkowski p of a metric, as scipy's cKDTree wants it."""
-    _check_metric(metric)
-    return {"l1": 1.0, "l2": 2.0, "inf": math.inf}[metric]
-
-
-def _check_metric(metric: str) -> None:
-    if metric not in METRICS:
-        raise RoadmapError(f"metric must be one of {list(METRICS)}, got {metric!r}")
-
-
-def pair_distances(z1: np.ndarray, z2: np.ndarray, metric: Metric) -> np.ndarray:
-    """Distances (float64) between rows of z1 and z2, broadcast like z1 - z2 over leading axes.
-
-    Works in blocks of rows, so large inputs never need a second full-size temporary.
-    """
-    _check_metric(metric)
-    try:
-        a, b = np.broadcast_arrays(np.asarray(z1, np.float64), np.asarray(z2, np.float64))
-    except ValueError:
-        raise RoadmapError(
-            f"pair_distances needs shapes that broadcast, got {np.shape(z1)} and {np.shape(z2)}"
-        ) from None
-    if a.ndim == 0:
-        raise RoadmapError("pair_distances needs vectors, got scalars")
-    a2 = a.reshape(-1, a.shape[-1])
-    b2 = b.reshape(-1, b.shape[-1])
-    out = np.empty(len(a2), dtype=np.float64)
-    step = max(1, _BLOCK // max(1, a2.shape[1]))
-    for s in range(0, len(a2), step):
-        out[s : s + step] = _rows(a2[s : s + step], b2[s : s + step], metric)
-    return out.reshape(a.shape[:-1])
-
-
-def _rows(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
-    diff = np.abs(a - b)
-    if metric == "l1":
-        return diff.sum(axis=1)
-    if metric == "l2":
-        return np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    return diff.max(axis=1, initial=0.0)
-
-
-def _distances_to(
-    x: np.ndarray, rows: np.ndarray, targets: np.ndarray, which: np.ndarray, metric: str
-) -> np.ndarray:
-    """Distance from x[rows[i]] to targets[which[i]] for every i, without an N x D copy."""
-    out = np.empty(len(rows), dtype=np.float64)
-    step = max(1, _BLOCK // x.shape[1])
-    for s in range(0, len(rows), step):
-        out[s : s + step] = _rows(x[rows[s : s + step]], targets[which[s : s + step]], metric)
-    return out
-
 
 @dataclass(frozen=True)
 class RoadmapConfig:
-    """How to build a roadmap: the metric d, epsilon's weight w, and the pruning threshold."""
+    """How to build a roadmap: the metric d, how epsilon is chosen, and the pruning threshold.
+
+    eps_rule "paper" is Algorithm 1's epsilon = mu0 + w_eps sigma0 over the no-action distances;
+    "stable" scans for the cut that keeps the regions unchanged longest (see stable_epsilon) and
+    falls back to the paper's rule where no such cut exists. min_samples None prunes regions
+    smaller than a tenth of the typical point's region (at least 1): 3 with the shipped box
+    stacking data (35 images a state), 1 with 1000 tuples (7 a state).
+    """
 
     metric: Metric = "l1"
     w_eps: float = 1.0
-    min_samples: int = 3  # prune regions with fewer members than this, then isolated nodes
+    min_samples: int | None = None  # prune regions with fewer members, then isolated nodes
+    eps_rule: EpsilonRule = "stable"
 
     def __post_init__(self) -> None:
         _check_metric(self.metric)
+        if self.eps_rule not in EPSILON_RULES:
+            raise RoadmapError(
+                f"eps_rule must be one of {list(EPSILON_RULES)}, got {self.eps_rule!r}"
+            )
         if isinstance(self.w_eps, bool) or not isinstance(self.w_eps, int | float):
             raise RoadmapError(f"w_eps must be a number, got {self.w_eps!r}")
         if not math.isfinite(self.w_eps):
             raise RoadmapError(f"w_eps must be finite, got {self.w_eps!r}")
+        if self.min_samples is None:
+            return
         if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, int):
-            raise RoadmapError(f"min_samples must be an integer, got {self.min_samples!r}")
+            raise RoadmapError(f"min_samples must be an integer or None, got {self.min_samples!r}")
         if self.min_samples < 1:
             raise RoadmapError(f"min_samples must be >= 1, got {self.min_samples}")
-
-
-# --------------------------------------------------------------------------------------------
-# Phase 2: connected components of the epsilon-graph
-# --------------------------------------------------------------------------------------------
-
-
-class _UnionFind:
-    """Disjoint sets over 0..n-1; the smaller id becomes the root, so results are deterministic."""
-
-    def __init__(self) -> None:
-        self.parent: list[int] = []
-
-    def add(self) -> int:
-        self.parent.append(len(self.parent))
-        return len(self.parent) - 1
-
-    def find(self, i: int) -> int:
-        parent = self.parent
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    def union(self, i: int, j: int) -> bool:
-        ri, rj = self.find(i), self.find(j)
-        if ri == rj:
-            return False
-        self.parent[max(ri, rj)] = min(ri, rj)
-        return True
-
-
-def _greedy_cover(
-    x: np.ndarray, radius: float, metric: str, links: bool
-) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
-    """Leaders in index order: every point joins the first leader closer than `radius` (strict).
-
-    Returns the leaders' row numbers, each row's leader number and, when `links`, the pairs
-    (earlier leader number, new leader number) for every earlier group that has a member closer
-    than `radius` to a new leader: such groups are adjacent in the radius-graph.
-    """
-    n = len(x)
-    owner = np.full(n, -1, dtype=np.int64)
-    leaders: list[int] = []
-    found: list[tuple[int, int]] = []
-    name = _CDIST_NAME[metric]
-    for i in range(n):
-        if owner[i] >= 0:
-            continue
-        g = len(leaders)
-        leaders.append(i)
-        # Every row before i is owned already; only rows that are still free can join.
-        rows = np.arange(n) if links else i + np.flatnonzero(owner[i:] < 0)
-        near = rows[cdist(x[i : i + 1], x[rows], name)[0] < radius]
-        owned = owner[near]
-        if links:
-            found.extend((int(h), g) for h in np.unique(owned[owned >= 0]))
-        owner[near[owned < 0]] = g
-    return np.asarray(leaders, dtype=np.int64), owner, found
-
-
-def _nearest_centre(x32: np.ndarray, rows: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """For each of x32[rows], the index of the nearest centre in L2 (one matrix product a block).
-
-    Only a guess at a good centre, in float32 for speed: callers measure the true distance.
-    """
-    c32 = centres.astype(np.float32)
-    half_sq = 0.5 * np.einsum("ij,ij->i", c32, c32)
-    out = np.empty(len(rows), dtype=np.int64)
-    step = max(1, _BLOCK // max(1, len(centres)))
-    for s in range(0, len(rows), step):
-        score = x32[rows[s : s + step]] @ c32.T  # argmax of x.c - |c|^2 / 2 = nearest centre
-        score -= half_sq
-        out[s : s + step] = np.argmax(score, axis=1)
-    return out
-
-
-def _coarse_cover(x: np.ndarray, radius: float, metric: Metric) -> np.ndarray:
-    """Split the points into balls of the given radius around centres that are data points.
-
-    Each round greedily picks centres among a sample of the uncovered points, then hands every
-    uncovered point to its nearest new centre if that centre is closer than `radius`. A class of
-    the data costs one centre, not one pass over all points per centre.
-    """
-    n = len(x)
-    x32 = x.astype(np.float32)
-    owner = np.full(n, -1, dtype=np.int64)
-    remaining = np.random.default_rng(0).permutation(n)
-    n_centres = 0
-    while remaining.size:
-        sample = remaining[:_COARSE_SAMPLE]
-        local, _, _ = _greedy_cover(x[sample], radius, metric, links=False)
-        centres = x[sample[local]]
-        near = _nearest_centre(x32, remaining, centres)
-        near[local] = np.arange(len(local))  # a centre always covers itself: the loop ends
-        dist = _distances_to(x, remaining, centres, near, metric)
-        covered = dist < radius
-        owner[remaining[covered]] = n_centres + near[covered]
-        n_centres += len(local)
-        remaining = remaining[~covered]
-    return owner
-
-
-def _groups(labels: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Members of each label as (order, bounds): label k owns order[bounds[k]:bounds[k + 1]]."""
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], np.arange(count + 1))
-    return order, bounds
-
-
-def _canonical(labels: np.ndarray) -> np.ndarray:
-    """Renumber labels 0.. by the smallest point index they hold."""
-    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
-    rank = np.empty(len(first), dtype=np.int64)
-    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
-    return rank[inverse.ravel()]
-
-
-def _dual_direction(v: np.ndarray, metric: str) -> np.ndarray:
-    """A direction w with |w . u| <= ||u|| for every u and w . v = ||v|| (a norm subgradient).
-
-    Projecting on w shrinks no distance below its projected gap, and keeps the gap between two
-    leaders whole: points of two stars that lie far apart along w cannot be neighbours.
-    """
-    if metric == "l1":
-        return np.sign(v)
-    if metric == "l2":
-        norm = float(np.sqrt(v @ v))
-        return v / norm if norm > 0 else np.zeros_like(v)
-    w = np.zeros_like(v)
-    k = int(np.argmax(np.abs(v)))
-    w[k] = 1.0 if v[k] >= 0 else -1.0
-    return w
-
-
-def _window(pa: np.ndarray, pb: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
-    """Masks of the values in pa (and pb) that have a value of the other within +-half."""
-    if pa.max() < pb.min() - half or pa.min() > pb.max() + half:
-        return np.zeros(len(pa), dtype=bool), np.zeros(len(pb), dtype=bool)
-    pb_sorted = np.sort(pb)
-    pa_sorted = np.sort(pa)
-    keep_a = np.searchsorted(pb_sorted, pa + half, "right") > np.searchsorted(
-        pb_sorted, pa - half, "left"
-    )
-    keep_b = np.searchsorted(pa_sorted, pb + half, "right") > np.searchsorted(
-        pa_sorted, pb - half, "left"
-    )
-    return keep_a, keep_b
-
-
-def _touch(
-    xa: np.ndarray,
-    xb: np.ndarray,
-    direction: np.ndarray,
-    slack: float,
-    eps: float,
-    metric: str,
-) -> bool:
-    """Whether some row of xa is closer than eps to some row of xb.
-
-    Projections on a direction w that shrinks no distance (see _dual_direction) differ by no
-    more than the distance itself, so rows whose projections lie eps or more from every
-    projection of the other set cannot have a neighbour there. The first direction runs between
-    the two stars' leaders, which settles most pairs of stars from different classes without
-    comparing any rows; the next ones run between the means of the rows left. `slack` covers
-    the rounding of the projections.
-    """
-    half = eps * _SLACK + slack
-    for _ in range(_DIRECTIONS):
-        w = _dual_direction(direction, metric)
-        keep_a, keep_b = _window(xa @ w, xb @ w, half)
-        if not keep_a.any():
-            return False
-        if keep_a.all() and keep_b.all():
-            break
-        xa = xa[keep_a]
-        xb = xb[keep_b]
-        direction = xb.mean(axis=0) - xa.mean(axis=0)
-    name = _CDIST_NAME[metric]
-    step = max(1, _SEARCH_BLOCK // len(xb))
-    return any(
-        bool((cdist(xa[s : s + step], xb, name) < eps).any()) for s in range(0, len(xa), step)
-    )
-
-
-def connected_regions(
-    points: np.ndarray, eps: float, metric: Metric
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Connected components of the graph joining points closer than eps (strict '<').
-
-    Returns a label per point, numbered 0.. by the smallest point index in each component, and
-    counters. Comparing all pairs is O(N^2), and KD-trees stop pruning in 64 dimensions, so:
-
-    1. Coarse balls of radius 2 eps around sampled centres split the points roughly by class
-       (see _coarse_cover); they only bound the work of step 2.
-    2. Inside each coarse ball, greedy "stars" in index order: a leader and every free point
-       closer than eps to it. A star is connected (each member touches its leader), and a star
-       whose leader is closer than eps to a member of an earlier star is united with it.
-    3. Two stars can only touch if their leaders are closer than both radii plus eps (triangle
-       inequality). For each such pair not yet united, look for one member pair closer than
-       eps, after dropping the members that projections prove too far away (see _touch).
-
-    Every union rests on a distance measured below eps, and every pair skipped is eps or more
-    apart by the triangle inequality or a projection, with a slack far above rounding: the
-    partition is the brute-force one (up to how the last bit of a distance rounds). Clustered
-    data costs about one pass per coarse ball and per star over its neighbourhood; points
-    without clusters in many dimensions (each its own ball) degrade toward O(N^2).
-    """
-    _check_metric(metric)
-    x = np.ascontiguousarray(points, dtype=np.float64)
-    if x.ndim != 2:
-        raise RoadmapError(f"points must have shape (N, D), got {x.shape}")
-    if not np.isfinite(x).all():
-        raise RoadmapError("points must be finite (no NaN or inf)")
-    n = len(x)
-    info: dict[str, Any] = {
-        "coarse_balls": 0,
-        "stars": 0,
-        "star_pairs": 0,
-        "star_checks": 0,
-        "star_joins": 0,
-    }
-    if n == 0:
-        return np.zeros(0, dtype=np.int64), info
-    if not eps > 0:  # no distance is below eps: every point is its own region
-        return np.arange(n, dtype=np.int64), info
-
-    # 1. Coarse balls.
-    t0 = time.perf_counter()
-    coarse = _coarse_cover(x, _COARSE_RADIUS * eps, metric)
-    n_coarse = int(coarse.max()) + 1
-    info["coarse_balls"] = n_coarse
-    t1 = time.perf_counter()
-
-    # 2. Stars inside each coarse ball (members in index order: deterministic).
-    star = np.empty(n, dtype=np.int64)
-    star_leader: list[np.ndarray] = []
-    sets = _UnionFind()
-    order, bounds = _groups(coarse, n_coarse)
-    for c in range(n_coarse):
-        members = order[bounds[c] : bounds[c + 1]]
-        leaders, owner, links = _greedy_cover(x[members], eps, metric, links=True)
-        base = len(sets.parent)
-        for _ in leaders:
-            sets.add()
-        for i, j in links:
-            sets.union(base + i, base + j)
-        star[members] = base + owner
-        star_leader.append(members[leaders])
-    leader = np.concatenate(star_leader)
-    n_stars = len(leader)
-    info["stars"] = n_stars
-    t2 = time.perf_counter()
-
-    # 3. Pairs of stars that may touch.
-    s_order, s_bounds = _groups(star, n_stars)
-    xs = x[s_order]  # star k owns the rows s_bounds[k]:s_bounds[k + 1]
-    lx = x[leader]
-    to_leader = _distances_to(xs, np.arange(n), lx, star[s_order], metric)
-    radius = np.maximum.reduceat(to_leader, s_bounds[:-1])  # no star is empty
-    pairs = cKDTree(lx).query_pairs(
-        (eps + 2.0 * radius.max()) * _SLACK, p=metric_p(metric), output_type="ndarray"
-    )
-    if len(pairs):
-        gap = pair_distances(lx[pairs[:, 0]], lx[pairs[:, 1]], metric)
-        keep = gap <= (radius[pairs[:, 0]] + radius[pairs[:, 1]] + eps) * _SLACK
-        pairs = pairs[keep][np.argsort(gap[keep], kind="stable")]  # likely joins first
-    info["star_pairs"] = len(pairs)
-    t3 = time.perf_counter()
-    # A projection on w (|w_i| <= 1) rounds by far less than 1e-9 of the row's L1 norm.
-    norm1 = np.maximum.reduceat(np.abs(xs).sum(axis=1), s_bounds[:-1])
-    checks = joins = 0
-    for a, b in pairs.tolist():
-        if sets.find(a) == sets.find(b):
-            continue
-        checks += 1
-        if _touch(
-            xs[s_bounds[a] : s_bounds[a + 1]],
-            xs[s_bounds[b] : s_bounds[b + 1]],
-            lx[b] - lx[a],
-            _ROUNDING * (norm1[a] + norm1[b]),
-            eps,
-            metric,
-        ):
-            sets.union(a, b)
-            joins += 1
-    info["star_checks"] = checks
-    info["star_joins"] = joins
-    t4 = time.perf_counter()
-    info["seconds"] = {
-        "coarse": t1 - t0,
-        "stars": t2 - t1,
-        "star_pairs": t3 - t2,
-        "star_checks": t4 - t3,
-    }
-
-    roots = np.fromiter((sets.find(i) for i in range(n_stars)), dtype=np.int64, count=n_stars)
-    return _canonical(roots[star]), info
 
 
 # --------------------------------------------------------------------------------------------
@@ -486,6 +150,12 @@ def build_roadmap(
     mu0 = float(d0.mean())
     sigma0 = float(d0.std())
     epsilon = mu0 + config.w_eps * sigma0
+    eps_rule: str = "paper"
+    scan: dict[str, Any] = {}
+    if config.eps_rule == "stable":
+        stable, scan = stable_epsilon(points, still, pair_ids, metric)
+        if stable is not None:
+            epsilon, eps_rule = stable, "stable"
     t_eps = time.perf_counter()
 
     # Phase 2: the valid regions.
@@ -515,7 +185,11 @@ def build_roadmap(
     t_phase3 = time.perf_counter()
 
     # Pruning: regions with fewer than min_samples members, then nodes left without an edge.
-    big = sizes >= config.min_samples
+    min_samples = config.min_samples
+    if min_samples is None:
+        typical = float(np.median(sizes[labels]))  # the region size of the typical point
+        min_samples = max(1, int(_MIN_SAMPLES_FRACTION * typical))
+    big = sizes >= min_samples
     kept_edge = big[edges[:, 0]] & big[edges[:, 1]]
     linked = np.zeros(n_regions, dtype=bool)
     linked[edges[kept_edge].ravel()] = True
@@ -531,6 +205,9 @@ def build_roadmap(
         "points": 2 * n,
         "action_pairs": len(pair_ids),
         "no_action_pairs": len(still),
+        "eps_rule": eps_rule,
+        "epsilon_scan": scan,
+        "min_samples": min_samples,
         "regions_before_pruning": n_regions,
         "edges_before_pruning": len(edges),
         "edge_weight_before_pruning": int(weights.sum()),
@@ -761,7 +438,8 @@ class Roadmap:
         if not isinstance(meta["config"], dict):
             raise RoadmapError(f"{meta_path}: config must be an object")
         try:
-            config = RoadmapConfig(**meta["config"])
+            # Roadmaps saved before eps_rule existed were built with Algorithm 1's epsilon.
+            config = RoadmapConfig(**{"eps_rule": "paper"} | meta["config"])
         except TypeError as exc:
             raise RoadmapError(f"{meta_path}: bad config ({exc})") from exc
         except RoadmapError as exc:

@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
 from services.planner.roadmap import Roadmap
 from services.runtime import ServiceContext
 from shared.bus import Handler
-from shared.messages import PathsReply, PathsRequest, WireArray, unpack
+from shared.messages import GraphReply, GraphRequest, PathsReply, PathsRequest, WireArray, unpack
 from shared.validation import check_latents, check_task
+
+log = logging.getLogger(__name__)
 
 
 def roadmap_paths(
@@ -18,9 +25,29 @@ def roadmap_paths(
     return roadmap.shortest_paths(start, goal, max_paths=max_paths)
 
 
+def node_labels(folder: Path, nodes: int) -> tuple[list[Any], list[float]] | None:
+    """Each node's majority true state and purity from `labels.json`, when the builder wrote
+    one that fits this roadmap; None otherwise (a model without states knows none)."""
+    try:
+        labels = json.loads((folder / "labels.json").read_text())
+        by_node = {int(label["node"]): label for label in labels}
+        if sorted(by_node) != list(range(nodes)):
+            raise ValueError(f"labels for {len(by_node)} nodes, the roadmap has {nodes}")
+        return (
+            [by_node[i]["state"] for i in range(nodes)],
+            [float(by_node[i]["purity"]) for i in range(nodes)],
+        )
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("%s/labels.json ignored: %s", folder, exc)
+        return None
+
+
 def setup(context: ServiceContext) -> dict[str, Handler]:
     roadmap = Roadmap.load(context.model.directory / "roadmap")
     dim, task = context.model.latent_dim, context.model.task
+    labels = node_labels(context.model.directory / "roadmap", roadmap.num_nodes)
 
     def paths(payload: bytes) -> PathsReply:
         request = unpack(payload, PathsRequest)
@@ -37,4 +64,15 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             reason=None if found else "start and goal are not connected in the roadmap",
         )
 
-    return {"paths": paths}
+    def graph(payload: bytes) -> GraphReply:
+        check_task(unpack(payload, GraphRequest).task, task)
+        return GraphReply(
+            node_latents=WireArray.of(roadmap.nodes.astype(np.float32).reshape(-1, dim)),
+            edges=WireArray.of(roadmap.edges.astype(np.int64).reshape(-1, 2)),
+            edge_weights=WireArray.of(roadmap.edge_weights.astype(np.int64)),
+            states=None if labels is None else labels[0],
+            purity=None if labels is None else labels[1],
+            model_id=context.model.model_id,
+        )
+
+    return {"paths": paths, "graph": graph}

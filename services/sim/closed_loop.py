@@ -7,7 +7,6 @@ the ActionPlanner, in the service stack a client of the planning services.
 from __future__ import annotations
 
 import itertools
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -16,7 +15,7 @@ import numpy as np
 
 from services.planner.evaluate import TransitionChecker, path_verdict
 from shared.plans import VisualActionPlan, most_confident
-from shared.tasks.base import IllegalActionError, Task, World, WorldError
+from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
 
 
 class Planner(Protocol):
@@ -102,21 +101,6 @@ def run_episode(
     if episode.success:
         episode.reason = "goal"
     return episode
-
-
-def optimal_moves(task: Task, start: Any, goal: Any) -> int | None:
-    """Breadth-first search over the task's state graph."""
-    seen = {start: 0}
-    queue = deque([start])
-    while queue:
-        state = queue.popleft()
-        if state == goal:
-            return seen[state]
-        for _, nxt in task.neighbours(state):
-            if nxt not in seen:
-                seen[nxt] = seen[state] + 1
-                queue.append(nxt)
-    return None
 
 
 class PlanJudge:

@@ -12,7 +12,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from tqdm import tqdm
@@ -34,6 +34,11 @@ class GenerateConfig:
     shard_size: int = 1000
     workers: int = min(2, os.cpu_count() or 1)
     episode_length: int | None = None  # tuples walked from one reset; None: the world's default
+    # "balanced": episodes start from every state in turn (a fresh seeded order each round, the
+    # action and no-action episodes each going round), so 1000 box-stacking tuples show every
+    # one of the 288 states in an action pair; "random": each start drawn independently, as
+    # before this option existed (with 1000 tuples, 1-2 states never appeared).
+    starts: Literal["balanced", "random"] = "balanced"
     world_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"lattice": 5}
 
     def __post_init__(self) -> None:
@@ -45,6 +50,8 @@ class GenerateConfig:
             raise ValueError("shard_size and workers must be at least 1")
         if self.episode_length is not None and self.episode_length < 1:
             raise ValueError(f"episode_length must be at least 1, got {self.episode_length}")
+        if self.starts not in ("balanced", "random"):
+            raise ValueError(f"starts must be balanced or random, got {self.starts!r}")
         if self.image_size not in range(16, 1025):
             raise ValueError(f"image_size {self.image_size} is out of range 16..1024")
 
@@ -57,17 +64,36 @@ def action_flags(cfg: GenerateConfig) -> np.ndarray:
     return flags
 
 
+def balanced_starts(task: Task, seed: int, first_flags: list[int]) -> list[int | None]:
+    """Index into task.all_states() of each episode's first state, by the episode's first flag:
+    the action episodes go round all states in seeded orders, and so do the no-action ones.
+    None for every episode when the task cannot enumerate its states (then they are drawn)."""
+    states = task.all_states()
+    if states is None:
+        return [None] * len(first_flags)
+    rng = np.random.default_rng([seed, 1])  # a stream of its own: tuples keep theirs
+    orders: dict[int, list[int]] = {0: [], 1: []}
+    out: list[int | None] = []
+    for flag in first_flags:
+        if not orders[flag]:
+            orders[flag] = rng.permutation(len(states)).tolist()[::-1]
+        out.append(orders[flag].pop())
+    return out
+
+
 def make_episode(
-    task: Task, world: World, seed: int, start: int, flags: list[int]
+    task: Task, world: World, seed: int, start: int, flags: list[int], first: int | None = None
 ) -> tuple[list[dict], int]:
-    """Tuples start .. start + len(flags) - 1: one walk from a random state, each tuple's second
-    state the next one's first. Seeded by (seed, start, attempt) alone, so the bytes do not
-    depend on how episodes are spread over workers; a walk whose physics fails starts again.
-    Returns the tuples and the number of failed attempts before them."""
+    """Tuples start .. start + len(flags) - 1: one walk from state `first` (an index into
+    task.all_states(), or None for a random state), each tuple's second state the next one's
+    first. Seeded by (seed, start, attempt) alone, so the bytes do not depend on how episodes
+    are spread over workers; a walk whose physics fails starts again. Returns the tuples and
+    the number of failed attempts before them."""
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, start, attempt])
         try:
-            state1 = task.sample_state(rng)
+            sampled = task.sample_state(rng)  # drawn either way: the rng stream stays the same
+            state1 = sampled if first is None else task.all_states()[first]
             if world.reset(state1, rng) != state1:
                 raise WorldError("settled state differs from the placed one")
             rows = []
@@ -111,13 +137,16 @@ def _init_worker(task_name: str, image_size: int, options: dict[str, Any]) -> No
     _worker = (get_task(task_name), make_world(task_name, image_size, **options))
 
 
-def _make_chunk(job: tuple[int, list[tuple[int, list[int]]]]) -> tuple[list[dict], int]:
+Episode = tuple[int, list[int], int | None]  # first tuple, action flags, first state's index
+
+
+def _make_chunk(job: tuple[int, list[Episode]]) -> tuple[list[dict], int]:
     assert _worker is not None
     seed, episodes = job
     task, world = _worker
     rows, retries = [], 0
-    for start, flags in episodes:
-        made, failed = make_episode(task, world, seed, start, flags)
+    for start, flags, first in episodes:
+        made, failed = make_episode(task, world, seed, start, flags, first)
         rows += made
         retries += failed
     return rows, retries
@@ -143,7 +172,15 @@ def generate(
 
     flags = action_flags(cfg)
     length = cfg.episode_length or world_class(cfg.task).episode_length
-    episodes = [(s, flags[s : s + length].tolist()) for s in range(0, cfg.pairs, length)]
+    begins = range(0, cfg.pairs, length)
+    firsts: list[int | None] = (
+        balanced_starts(get_task(cfg.task), cfg.seed, [int(flags[s]) for s in begins])
+        if cfg.starts == "balanced"
+        else [None] * len(begins)
+    )
+    episodes: list[Episode] = [
+        (s, flags[s : s + length].tolist(), first) for s, first in zip(begins, firsts, strict=True)
+    ]
     per_job = max(1, 25 // length)  # about 25 tuples a job
     jobs = [(cfg.seed, episodes[i : i + per_job]) for i in range(0, len(episodes), per_job)]
     started = time.perf_counter()

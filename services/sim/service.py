@@ -6,17 +6,34 @@ sim holds no model: only the image size it must render at.
 
 from __future__ import annotations
 
+import logging
+from typing import Any
+
 import numpy as np
+import zenoh
 
 from services.runtime import ServiceContext
 from services.sim.closed_loop import run_episode
 from services.sim.worlds import make_world
-from shared.bus import Handler
+from shared.bus import MSGPACK, Handler, progress_key
 from shared.client import PlanningClient
-from shared.messages import RenderReply, RenderRequest, RunReply, RunRequest, WireArray, unpack
+from shared.messages import (
+    PixelsReply,
+    PixelsRequest,
+    RenderReply,
+    RenderRequest,
+    RunReply,
+    RunRequest,
+    RunStep,
+    WireArray,
+    pack,
+    unpack,
+)
 from shared.tasks import get_task
 from shared.tasks.base import World
 from shared.validation import FieldError, check_images, check_task, parse_state
+
+log = logging.getLogger(__name__)
 
 
 def setup(context: ServiceContext) -> dict[str, Handler]:
@@ -59,6 +76,24 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             goal_image = check_images("goal_image", request.goal_image, size)
         if (goal is None) == (goal_image is None):
             raise FieldError("goal_state", "give exactly one of goal_state and goal_image")
+        on_step = None
+        if request.progress is not None:
+            key = progress_key(name, request.progress)
+            run_world = world("run")
+
+            def on_step(step: int, action: Any, state: Any) -> None:
+                # What the camera sees now: the image the episode has just recorded.
+                message = RunStep(
+                    step=step,
+                    action=task.action_to_json(action),
+                    state=task.state_to_json(state),
+                    image=WireArray.of(run_world.render()),
+                )
+                try:
+                    context.session.put(key, pack(message), encoding=MSGPACK)
+                except zenoh.ZError:  # progress is a courtesy: the episode goes on without it
+                    log.warning("could not publish step %d on %s", step, key)
+
         episode = run_episode(
             planner,
             world("run"),
@@ -68,6 +103,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             goal_image=goal_image,
             max_steps=request.max_steps,
             max_plans=request.max_plans,
+            on_step=on_step,
         )
         images = np.stack(episode.images) if episode.images else np.zeros((0, size, size, 3))
         return RunReply(
@@ -80,4 +116,12 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             images=WireArray.of(images.astype(np.uint8)),
         )
 
-    return {"render": render, "run": run}
+    def pixels(payload: bytes) -> PixelsReply:
+        request = unpack(payload, PixelsRequest)
+        check_task(request.task, name)
+        actions = [task.parse_action(a) for a in request.actions]
+        pixels_world = world("pixels")
+        marks = [[*pick, *release] for pick, release in map(pixels_world.action_pixels, actions)]
+        return PixelsReply(pixels=WireArray.of(np.asarray(marks, np.float32)), image_size=size)
+
+    return {"render": render, "run": run, "pixels": pixels}

@@ -8,6 +8,7 @@ service owns the implementations. A second task (cloth folding) plugs in by impl
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Sequence
 from functools import cached_property
 from typing import Any, Generic, TypeVar
@@ -207,3 +208,18 @@ class World(ABC, Generic[State, Action]):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def optimal_moves(task: Task, start: Any, goal: Any) -> int | None:
+    """Breadth-first search over the task's state graph."""
+    seen = {start: 0}
+    queue = deque([start])
+    while queue:
+        state = queue.popleft()
+        if state == goal:
+            return seen[state]
+        for _, nxt in task.neighbours(state):
+            if nxt not in seen:
+                seen[nxt] = seen[state] + 1
+                queue.append(nxt)
+    return None

@@ -21,6 +21,7 @@ from shared.bus import (
     call,
     close_quietly,
     open_session,
+    progress_key,
     robot_plan_key,
     service_key,
 )
@@ -126,6 +127,20 @@ def test_robots_use_the_api_and_read_only_their_own_plans(deployment):
     time.sleep(0.5)
     assert mine == [b"plan for arm-1"] and theirs == []
     queryable.undeclare()
+
+
+def test_only_the_sim_publishes_episode_steps_and_only_the_gateway_reads_them(deployment):
+    _, _, join = deployment
+    key = progress_key("t", "0" * 32)
+    gateway, robot, monitor = join("gateway"), join("robot-arm-1"), join("monitor")
+    heard: dict[str, list[bytes]] = {"gateway": [], "robot": [], "monitor": []}
+    for name, session in (("gateway", gateway), ("robot", robot), ("monitor", monitor)):
+        session.declare_subscriber(key, lambda s, n=name: heard[n].append(s.payload.to_bytes()))
+    time.sleep(0.5)
+    join("sim").put(key, b"step 1")
+    join("planner").put(key, b"forged by the planner")  # another service may not
+    time.sleep(0.5)
+    assert heard == {"gateway": [b"step 1"], "robot": [], "monitor": []}
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")

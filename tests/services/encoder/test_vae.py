@@ -7,6 +7,7 @@ import torch
 from services.encoder.checkpoint import decode_latents, encode_images, load_vae
 from services.encoder.model import VAE, VAEConfig
 from services.encoder.train import (
+    DEFAULT_STEPS,
     TrainConfig,
     action_term,
     latent_distance,
@@ -73,15 +74,28 @@ def test_bad_train_config():
         TrainConfig(metric="l3")
     with pytest.raises(ValueError, match="dm"):
         TrainConfig(dm=-1.0)
+    for bad in ({"steps": 0}, {"epochs": 0}, {"lr_drop": 1.5}, {"clip_grad_norm": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TrainConfig(**bad)
+
+
+def test_run_length_in_steps_whatever_the_data_size():
+    assert TrainConfig().total_steps(250) == TrainConfig().total_steps(5000) == DEFAULT_STEPS
+    assert TrainConfig(epochs=30).total_steps(5000) == 30 * 79  # the shipped box model's run
+    assert TrainConfig(epochs=2, batch_size=16).total_steps(33) == 6
 
 
 def test_train_is_seeded_and_round_trips(tiny_data, tmp_path):
-    cfg = TrainConfig(metric="l1", epochs=2, batch_size=16, latent_dim=8, monitor_pairs=16)
+    cfg = TrainConfig(
+        metric="l1", steps=7, batch_size=16, latent_dim=8, monitor_pairs=16, log_every=3
+    )
     rec_a = train_vae(tiny_data, tmp_path / "a", cfg, progress=False)
     rec_b = train_vae(tiny_data, tmp_path / "b", cfg, progress=False)
     assert rec_a["loss"] == rec_b["loss"]
-    lines = (tmp_path / "a" / "log.jsonl").read_text().splitlines()
-    assert [json.loads(x)["epoch"] for x in lines] == [1, 2]
+    lines = [json.loads(x) for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert [x["step"] for x in lines] == [3, 6, 7]  # every log_every steps, and the last
+    assert [x["lr"] for x in lines] == [1e-3, 1e-4, 1e-4]  # dropped after 2/3 of the run
+    assert all(x["grad_norm_max"] > 0 and x["clipped_steps"] >= 0 for x in lines)
     model, config = load_vae(tmp_path / "a")
     assert config["train"]["metric"] == "l1" and config["dataset"]["seed"] == 11
     images = np.zeros((3, 32, 32, 3), np.uint8)
@@ -97,7 +111,7 @@ def test_action_term_on_means(tiny_data, tmp_path):
     with pytest.raises(ValueError, match="action_on"):
         TrainConfig(action_on="both")
     cfg = TrainConfig(
-        metric="l2", action_on="mean", epochs=1, batch_size=16, latent_dim=8, monitor_pairs=16
+        metric="l2", action_on="mean", steps=3, batch_size=16, latent_dim=8, monitor_pairs=16
     )
     record = train_vae(tiny_data, tmp_path / "m", cfg, progress=False)
     assert record["action"] > 0
@@ -105,7 +119,7 @@ def test_action_term_on_means(tiny_data, tmp_path):
 
 
 def test_baseline_trains_without_action_term(tiny_data, tmp_path):
-    cfg = TrainConfig(metric="none", epochs=1, batch_size=16, latent_dim=8, monitor_pairs=16)
+    cfg = TrainConfig(metric="none", steps=3, batch_size=16, latent_dim=8, monitor_pairs=16)
     record = train_vae(tiny_data, tmp_path / "b", cfg, progress=False)
     assert record["action"] == 0.0 and record["gamma"] == 0.0
 

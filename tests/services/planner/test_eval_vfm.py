@@ -11,6 +11,7 @@ from services.planner.evaluate import evaluate_plans, label_nodes, sample_test_p
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from services.sim.datagen import GenerateConfig, generate
 from shared.tasks import get_task
+from shared.tasks.base import optimal_moves
 
 TASK = get_task("box_stacking")
 
@@ -49,6 +50,13 @@ def test_perfect_latents_give_perfect_plans(synthetic):
     pairs = sample_test_pairs(len(z_test), 200, seed=1)
     result = evaluate_plans("box_stacking", roadmap, labels, z_test, test_states, pairs, 50)
     assert (result["all"], result["any"], result["trans"]) == (100.0, 100.0, 100.0)
+    # Detours: the roadmap's plans against the fewest legal moves, pair by pair.
+    ratios = []
+    for i, j in pairs:
+        start, goal = (TASK.array_to_state(test_states[k]) for k in (i, j))
+        plan = roadmap.shortest_paths(*(int(roadmap.nearest_node(z_test[k])) for k in (i, j)))
+        ratios.append((len(plan[0]) - 1) / optimal_moves(TASK, start, goal))
+    assert result["detour_ratio"] == pytest.approx(np.mean(ratios)) and min(ratios) >= 1.0
     reads = labels.states.copy()
     result = evaluate_plans("box_stacking", roadmap, labels, z_test, test_states, pairs, 50, reads)
     assert result["decoded_agreement"] == 100.0

@@ -5,7 +5,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from safetensors.numpy import load_file, save_file
-from scipy.sparse.csgraph import connected_components
 
 from services.planner import roadmap as rm
 from services.planner.roadmap import (
@@ -13,8 +12,6 @@ from services.planner.roadmap import (
     RoadmapConfig,
     RoadmapError,
     build_roadmap,
-    connected_regions,
-    metric_p,
     pair_distances,
 )
 
@@ -23,86 +20,6 @@ REFERENCE = (
     Path(__file__).resolve().parents[3].parent
     / "shared/reference/data/lsr_v1_box_stacking_latents.npz"
 )
-
-
-# ------------------------------------------------------------------------------------------
-# Phase 2 against the definition
-# ------------------------------------------------------------------------------------------
-
-
-def brute_force_regions(points, eps, metric, strict=True):
-    """Algorithm 1's phase 2 by definition: components of the graph d(p, q) < eps."""
-    diff = np.abs(points[:, None, :] - points[None, :, :])
-    if metric == "l1":
-        dist = diff.sum(-1)
-    elif metric == "l2":
-        dist = np.sqrt((diff**2).sum(-1))
-    else:
-        dist = diff.max(-1)
-    _, labels = connected_components(dist < eps if strict else dist <= eps, directed=False)
-    _, first = np.unique(labels, return_index=True)
-    rank = np.empty(len(first), dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(len(first))  # numbered by smallest point index
-    return rank[labels]
-
-
-def grid_points(seed):
-    """Points on a half-integer grid: many pairs lie at exactly eps = 0.5 or 1, in every metric."""
-    rng = np.random.default_rng(seed)
-    return rng.integers(0, 12, size=(300, 3)) * 0.5
-
-
-def clustered_points(seed):
-    """Clusters of different spread in 8-D, some touching, some chained, some not."""
-    rng = np.random.default_rng(seed)
-    centres = rng.normal(0.0, 1.0, size=(25, 8))
-    spread = rng.uniform(0.05, 0.35, size=25)
-    cls = rng.integers(0, 25, size=500)
-    return centres[cls] + rng.normal(size=(500, 8)) * spread[cls, None]
-
-
-def chain_points():
-    """Stars joined only through members (neither leader is within eps of the other star)."""
-    line = np.array([0.0, 2.7, 0.9, 1.8, 10.0, 12.5, 11.0, 11.5])
-    return np.stack([line, np.zeros_like(line)], axis=1)
-
-
-@pytest.mark.parametrize("metric", METRICS)
-@pytest.mark.parametrize("sample", [16, None])
-def test_regions_match_brute_force(metric, sample, monkeypatch):
-    if sample is not None:  # many rounds of the coarse cover
-        monkeypatch.setattr(rm, "_COARSE_SAMPLE", sample)
-    cases = [(grid_points(1), 1.0), (grid_points(2), 0.5), (grid_points(2), 1.0)]
-    pts = clustered_points(3)
-    near = pair_distances(pts[:-1], pts[1:], metric)
-    cases += [(pts, float(np.quantile(near, q))) for q in (0.05, 0.2, 0.5)]
-    for points, eps in cases:
-        labels, info = connected_regions(points, eps, metric)
-        expected = brute_force_regions(points, eps, metric)
-        assert np.array_equal(labels, expected), (metric, eps, info)
-    # The grids have pairs at exactly eps: there '<' and '<=' give different partitions.
-    for points, eps in cases[:3]:
-        strict = brute_force_regions(points, eps, metric)
-        assert 10 < strict.max() < len(points) - 10
-        assert not np.array_equal(strict, brute_force_regions(points, eps, metric, False))
-
-
-@pytest.mark.parametrize("metric", METRICS)
-def test_regions_joined_through_members(metric):
-    labels, info = connected_regions(chain_points(), 1.0, metric)
-    assert labels.tolist() == [0, 0, 0, 0, 1, 2, 3, 3]  # 10 | 11 and 11.5 | 12.5: exactly eps
-    assert info["star_joins"] >= 1  # settled by comparing members, not leaders
-    assert np.array_equal(labels, brute_force_regions(chain_points(), 1.0, metric))
-
-
-def test_regions_distance_exactly_eps_is_not_joined():
-    points = np.array([[0.0, 0.0], [3.0, 4.0], [6.0, 8.0]])
-    assert connected_regions(points, 5.0, "l2")[0].tolist() == [0, 1, 2]
-    assert connected_regions(points, np.nextafter(5.0, 6.0), "l2")[0].tolist() == [0, 0, 0]
-    assert connected_regions(points, 7.0, "l1")[0].tolist() == [0, 1, 2]
-    assert connected_regions(points, 4.0, "inf")[0].tolist() == [0, 1, 2]
-    assert connected_regions(points, 0.0, "l1")[0].tolist() == [0, 1, 2]
-    assert connected_regions(np.zeros((0, 2)), 1.0, "l1")[0].shape == (0,)
 
 
 # ------------------------------------------------------------------------------------------
@@ -150,9 +67,11 @@ def node_of_class(roadmap, classes):
 
 
 @pytest.mark.parametrize("metric", METRICS)
-def test_build_recovers_classes_and_graph(metric):
+@pytest.mark.parametrize("eps_rule", ["paper", "stable"])
+def test_build_recovers_classes_and_graph(metric, eps_rule):
     z1, z2, a, classes = synthetic()
-    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric=metric))
+    config = RoadmapConfig(metric=metric, eps_rule=eps_rule, min_samples=3)
+    roadmap = build_roadmap(z1, z2, a, config)
     mapping = node_of_class(roadmap, classes)
     assert roadmap.nodes.shape == (N_CLASSES, 8) and roadmap.nodes.dtype == np.float32
     for c in (SMALL, ISOLATED, DANGLING):
@@ -191,7 +110,8 @@ def test_build_recovers_classes_and_graph(metric):
 
 def test_build_epsilon_and_pruning_thresholds():
     z1, z2, a, classes = synthetic()
-    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(metric="l2", w_eps=0.5, min_samples=1))
+    config = RoadmapConfig(metric="l2", w_eps=0.5, min_samples=1, eps_rule="paper")
+    roadmap = build_roadmap(z1, z2, a, config)
     d0 = np.linalg.norm(z1[a == 0].astype(np.float64) - z2[a == 0], axis=1)
     assert roadmap.mu0 == pytest.approx(d0.mean(), rel=1e-12)
     assert roadmap.sigma0 == pytest.approx(d0.std(ddof=0), rel=1e-12)
@@ -217,10 +137,57 @@ def test_build_strict_epsilon_on_pairs():
     z1 = np.arange(12, dtype=np.float32).reshape(4, 3) * 8
     z2 = z1.copy()
     z2[:, 0] += 1
-    roadmap = build_roadmap(z1, z2, np.zeros(4, dtype=np.int8), RoadmapConfig(min_samples=1))
+    config = RoadmapConfig(min_samples=1, eps_rule="paper")
+    roadmap = build_roadmap(z1, z2, np.zeros(4, dtype=np.int8), config)
     assert roadmap.epsilon == 1.0
     assert roadmap.stats["regions_before_pruning"] == 8
     assert roadmap.num_nodes == 0  # no action pairs: every node is isolated
+
+
+def test_build_defaults_follow_the_data():
+    # Three images a state: a no-action pair 1 apart, and the image its actions start from
+    # and end in, 2.5 away; states 40+ apart. The paper's epsilon (mu0 + sigma0, about 1)
+    # splits every state in two; the stable rule joins them.
+    rng = np.random.default_rng(3)
+    centres = rng.normal(0.0, 30.0, size=(40, 8))
+    e0, e1 = np.eye(8)[0], np.eye(8)[1]
+    still = centres + 0.0
+    z1 = np.r_[still, centres + 2.5 * e1]
+    z2 = np.r_[
+        still + e0 * rng.uniform(0.99, 1.01, size=(40, 1)), np.roll(centres, 1, 0) + 2.5 * e1
+    ]
+    a = np.r_[np.zeros(40), np.ones(40)].astype(np.int8)
+    paper = build_roadmap(z1, z2, a, RoadmapConfig(eps_rule="paper", min_samples=1))
+    default = build_roadmap(z1, z2, a)
+    assert paper.stats["regions_before_pruning"] > 40
+    assert default.stats["eps_rule"] == "stable" and default.epsilon > paper.epsilon
+    assert default.stats["regions_before_pruning"] == default.num_nodes == 40
+    assert len(default.edges) == 40 and default.stats["min_samples"] == 1  # 3 a region
+    assert default.config == RoadmapConfig()
+    # Without a stable range (latents without structure) Algorithm 1's epsilon is used.
+    noise = rng.uniform(size=(2, 100, 3)) / 20
+    flags = np.arange(100) % 2
+    fallback = build_roadmap(noise[0], noise[1], flags, RoadmapConfig(min_samples=1))
+    as_written = build_roadmap(noise[0], noise[1], flags, RoadmapConfig(eps_rule="paper"))
+    assert fallback.stats["eps_rule"] == "paper" and fallback.epsilon == as_written.epsilon
+
+
+def test_min_samples_default_scales_with_the_data():
+    z1, z2, a, _ = synthetic()
+    dense = np.tile(np.arange(len(a)), 10)  # every tuple ten times
+    roadmap = build_roadmap(z1[dense], z2[dense], a[dense], RoadmapConfig(eps_rule="paper"))
+    assert roadmap.stats["min_samples"] > 1 and (roadmap.node_sizes >= 10).all()
+    once = build_roadmap(z1, z2, a, RoadmapConfig(eps_rule="paper"))
+    assert once.stats["min_samples"] == 1
+
+
+def test_roadmaps_saved_before_eps_rule_load_as_algorithm_1(tmp_path):
+    z1, z2, a, _ = synthetic()
+    build_roadmap(z1, z2, a, RoadmapConfig(eps_rule="paper", min_samples=3)).save(tmp_path)
+    meta = json.loads((tmp_path / "roadmap.json").read_text())
+    del meta["config"]["eps_rule"]
+    (tmp_path / "roadmap.json").write_text(json.dumps(meta))
+    assert Roadmap.load(tmp_path).config == RoadmapConfig(eps_rule="paper", min_samples=3)
 
 
 def test_build_rejects_bad_input():
@@ -235,25 +202,17 @@ def test_build_rejects_bad_input():
     bad[0, 0] = np.nan
     with pytest.raises(RoadmapError, match="finite"):
         build_roadmap(bad, z2, a)
-    for kwargs in ({"metric": "l3"}, {"w_eps": float("nan")}, {"min_samples": 0}):
+    bad_configs = (
+        {"metric": "l3"},
+        {"w_eps": float("nan")},
+        {"min_samples": 0},
+        {"min_samples": 2.5},
+        {"eps_rule": "auto"},
+    )
+    for kwargs in bad_configs:
         with pytest.raises(RoadmapError):
             RoadmapConfig(**kwargs)
     assert issubclass(RoadmapError, ValueError)
-
-
-def test_metric_helpers():
-    assert [metric_p(m) for m in METRICS] == [1.0, 2.0, np.inf]
-    a = np.array([[0.0, 0.0], [1.0, 1.0]])
-    b = np.array([[3.0, 4.0], [1.0, 1.0]])
-    assert pair_distances(a, b, "l1").tolist() == [7.0, 0.0]
-    assert pair_distances(a, b, "l2").tolist() == [5.0, 0.0]
-    assert pair_distances(a, b, "inf").tolist() == [4.0, 0.0]
-    assert pair_distances(a[0], b[0], "l2") == 5.0
-    assert pair_distances(a, b[:1], "l1").tolist() == [7.0, 5.0]  # broadcasts
-    with pytest.raises(RoadmapError, match="broadcast"):
-        pair_distances(a, np.zeros((3, 2)), "l1")
-    with pytest.raises(RoadmapError):
-        metric_p("l0")
 
 
 # ------------------------------------------------------------------------------------------
@@ -416,7 +375,10 @@ def test_reference_latents_give_the_reference_roadmap():
         pytest.skip(f"reference latents not found at {REFERENCE}")
     data = np.load(REFERENCE)
     roadmap = build_roadmap(
-        data["z1"], data["z2"], data["action"], RoadmapConfig(metric="l1", w_eps=1.0)
+        data["z1"],
+        data["z2"],
+        data["action"],
+        RoadmapConfig(metric="l1", w_eps=1.0, min_samples=3, eps_rule="paper"),
     )
     stats = roadmap.stats
     assert roadmap.epsilon == pytest.approx(1.44686, rel=1e-4)

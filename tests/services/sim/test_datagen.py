@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from services.sim.datagen import GenerateConfig, action_flags, generate
+from services.sim.datagen import GenerateConfig, action_flags, balanced_starts, generate
 from shared.dataset import DatasetError, load_dataset
 from shared.tasks import get_task
 
@@ -34,6 +34,32 @@ def test_dataset_contents(tmp_path):
         else:
             assert action is None and s1 == s2
             assert not np.array_equal(data.image1[i], data.image2[i])  # fresh noise
+
+
+def test_balanced_starts_go_round_every_state():
+    task = get_task("box_stacking")
+    flags = [1, 0] * 300 + [1] * 100
+    starts = balanced_starts(task, 3, flags)
+    action_starts = [s for s, f in zip(starts, flags, strict=True) if f]
+    assert sorted(action_starts[:288]) == list(range(288))  # each state once a round
+    assert sorted([s for s, f in zip(starts, flags, strict=True) if not f][:288]) == list(
+        range(288)
+    )
+    assert starts == balanced_starts(task, 3, flags) != balanced_starts(task, 4, flags)
+
+
+def test_balanced_dataset_starts_where_it_says(tmp_path):
+    _generate(tmp_path / "b", pairs=12)
+    _generate(tmp_path / "r", pairs=12, starts="random")
+    task = get_task("box_stacking")
+    flags = action_flags(GenerateConfig(pairs=12, seed=5)).tolist()
+    expected = [task.all_states()[i] for i in balanced_starts(task, 5, flags)]
+    balanced, drawn = load_dataset(tmp_path / "b"), load_dataset(tmp_path / "r")
+    assert [task.array_to_state(s) for s in balanced.state1] == expected
+    assert [task.array_to_state(s) for s in drawn.state1] != expected
+    assert balanced.manifest["config"]["starts"] == "balanced"
+    with pytest.raises(ValueError, match="starts"):
+        GenerateConfig(starts="sorted")
 
 
 def test_same_seed_same_bytes_any_worker_count(tmp_path):
