@@ -4,8 +4,8 @@ data imported as a task defined by its data (which never saw a state, a rule or 
     python benchmarks/data_only_judge.py --model runs/data_only_cloth/model --pairs 200
     python benchmarks/data_only_judge.py --model models/cloth_folding --pairs 200
 
-For seeded random start/goal pairs of distinct cloth states (drawn as `lsr eval system` draws
-them): render both, plan from the start image to the goal image, and
+For seeded random start/goal pairs of distinct cloth states (the same pairs for every model):
+render both, plan from the start image to the goal image, and
 - open loop: execute every action of the plan the APN is surest of in MuJoCo; the plan is valid
   when the simulator's read-back state is the goal (and the task's rules take the same actions
   from start to goal, reported apart);
@@ -44,14 +44,19 @@ def cloth_planner(model: Path) -> ActionPlanner:
 
 def open_loop(planner: ActionPlanner, pairs: int, seed: int) -> dict:
     task = planner.task
-    rng = np.random.default_rng(seed)
+    # The pairs are drawn first, from their own generator, so that every model gets the same
+    # pairs whatever its plans consumed of the noise generator.
+    draw = np.random.default_rng(seed)
+    chosen = []
+    for _ in range(pairs):
+        start, goal = task.sample_state(draw), task.sample_state(draw)
+        while goal == start:
+            goal = task.sample_state(draw)
+        chosen.append((start, goal))
+    rng = np.random.default_rng([seed, 1])
     valid = by_rules = with_plan = illegal = physics = actions = 0
     with make_world(task.name, planner.image_size) as world:
-        for _ in tqdm(range(pairs), desc="open loop", unit="pair"):
-            start = task.sample_state(rng)
-            goal = task.sample_state(rng)
-            while goal == start:
-                goal = task.sample_state(rng)
+        for start, goal in tqdm(chosen, desc="open loop", unit="pair"):
             world.reset(goal, rng)
             goal_image = world.render()
             world.reset(start, rng)
