@@ -51,6 +51,7 @@ class ModelInfo:
         if unsealed:
             log.warning("%s: %s not sealed: served unverified", directory, ", ".join(unsealed))
         config = read_vae_config(directory / "vae")
+        declare_model_task(config)
         digest = hashlib.sha256(weights_file(directory / "vae", WEIGHTS).read_bytes())
         return cls(
             directory=directory,
@@ -59,6 +60,17 @@ class ModelInfo:
             image_size=int(config["model"]["image_size"]),
             latent_dim=int(config["model"]["latent_dim"]),
         )
+
+
+def declare_model_task(vae_config: dict) -> None:
+    """Make a task defined by its data known to this process (built-in tasks need nothing):
+    the VAE's config records the spec of the dataset it was trained on."""
+    spec = vae_config["dataset"].get("spec")
+    if spec is not None:
+        from shared.tasks import declare_task
+        from shared.tasks.spec import TaskSpec
+
+        declare_task(TaskSpec.from_json(spec))
 
 
 @dataclass

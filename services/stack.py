@@ -26,13 +26,37 @@ from shared.bus import SERVICES
 from shared.settings import shipped_models
 
 
-def model_task(model_dir: Path) -> str:
-    """The task a model folder serves, as its VAE's config records it (no torch import)."""
+def _model_dataset(model_dir: Path) -> dict:
     path = Path(model_dir) / "vae" / "config.json"
     try:
-        return json.loads(path.read_text())["dataset"]["task"]
+        dataset = json.loads(path.read_text())["dataset"]
+        if not isinstance(dataset["task"], str):
+            raise TypeError
+        return dataset
     except (OSError, ValueError, KeyError, TypeError):
         raise ValueError(f"{model_dir}: not a model folder (no task in {path})") from None
+
+
+def model_task(model_dir: Path) -> str:
+    """The task a model folder serves, as its VAE's config records it (no torch import)."""
+    return _model_dataset(model_dir)["task"]
+
+
+def declared_spec(model_dir: Path) -> dict | None:
+    """The spec of a model's task when that task is defined by its data (no simulator)."""
+    from shared.tasks import has_simulator
+
+    dataset = _model_dataset(model_dir)
+    return None if has_simulator(dataset["task"]) else dataset.get("spec")
+
+
+def model_services(model_dir: Path) -> tuple[str, ...]:
+    """The services a model needs: no sim for a task without a simulator."""
+    from shared.tasks import has_simulator
+
+    if has_simulator(model_task(model_dir)):
+        return SERVICES
+    return tuple(s for s in SERVICES if s != "sim")
 
 
 @dataclass
@@ -58,6 +82,12 @@ class StackConfig:
     @property
     def tasks(self) -> list[str]:
         return [model_task(m) for m in self.models]
+
+    @property
+    def task_specs(self) -> dict[str, dict]:
+        """The specs of the served tasks that are defined by their data, by task."""
+        specs = {model_task(m): declared_spec(m) for m in self.models}
+        return {task: spec for task, spec in specs.items() if spec is not None}
 
     @property
     def endpoint(self) -> str:
@@ -89,6 +119,7 @@ class Stack:
             **os.environ,
             "LSR_ZENOH_CONNECT": self.config.endpoint,
             "LSR_TASKS": json.dumps(self.config.tasks),
+            "LSR_TASK_SPECS": json.dumps(self.config.task_specs),
             "PYTHONUNBUFFERED": "1",
             **self.config.env,
         }
@@ -130,7 +161,7 @@ class Stack:
         self.start_router()
         self._wait_for_router()
         for model in self.config.models:
-            for service in SERVICES:
+            for service in model_services(model):
                 self.start_service(service, model=model)
         self.start_gateway()
 

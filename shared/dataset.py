@@ -7,6 +7,7 @@ Layout of a dataset folder:
     a               uint8  (n,)     1 = action pair, 0 = no-action pair
     u               spec.action.dtype  (n, *spec.action.shape)  -1 everywhere when a = 0
     state1, state2  spec.state.dtype   (n, *spec.state.shape)
+    episode         int32  (n,)     optional: index into the manifest's `episodes` (imported data)
 The manifest's `spec` (a `TaskSpec`) declares the arrays, so readers never look shapes up in
 the task registry; manifests written before it existed get the registered task's spec.
 Zip entries carry a fixed timestamp, so the same seed gives the same bytes.
@@ -31,6 +32,7 @@ from shared.tasks.spec import SpecError, TaskSpec
 FORMAT = "lsr-dataset"
 VERSION = 1
 FIELDS = ("image1", "image2", "a", "u", "state1", "state2")
+OPTIONAL = ("episode",)  # written when present; old readers ignore it
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
@@ -47,6 +49,7 @@ class Dataset:
     u: np.ndarray
     state1: np.ndarray
     state2: np.ndarray
+    episode: np.ndarray | None = None  # index into manifest["episodes"], where recorded
 
     def __len__(self) -> int:
         return len(self.a)
@@ -83,6 +86,10 @@ def validate_arrays(spec: TaskSpec, arrays: dict[str, np.ndarray]) -> None:
         for name in FIELDS:
             if len(arrays[name]) != n:
                 raise SpecError(f"{name}: {len(arrays[name])} rows, 'a' has {n}")
+        if "episode" in arrays and (
+            arrays["episode"].shape != (n,) or arrays["episode"].dtype != np.int32
+        ):
+            raise SpecError(f"episode: expected int32 of shape ({n},)")
         spec.action.validate(arrays["u"], "u")
         if spec.state is not None:
             spec.state.validate(arrays["state1"], "state1")
@@ -96,7 +103,7 @@ def write_shard(path: Path, arrays: dict[str, np.ndarray], spec: TaskSpec) -> st
     validate_arrays(spec, arrays)
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as zf:
-        for name in FIELDS:
+        for name in (*FIELDS, *(f for f in OPTIONAL if f in arrays)):
             entry = io.BytesIO()
             np.lib.format.write_array(entry, np.ascontiguousarray(arrays[name]), allow_pickle=False)
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
@@ -112,7 +119,7 @@ def read_shard(path: Path) -> dict[str, np.ndarray]:
         missing = [f for f in FIELDS if f not in npz.files]
         if missing:
             raise DatasetError(f"{path}: missing arrays {missing}")
-        return {f: npz[f] for f in FIELDS}
+        return {f: npz[f] for f in (*FIELDS, *(f for f in OPTIONAL if f in npz.files))}
 
 
 def read_manifest(directory: Path | str) -> dict[str, Any]:
@@ -137,13 +144,15 @@ def iter_shards(directory: Path | str, verify: bool = True) -> Iterator[dict[str
 
 def load_dataset(directory: Path | str, verify: bool = True) -> Dataset:
     manifest = read_manifest(directory)
-    parts: dict[str, list[np.ndarray]] = {f: [] for f in FIELDS}
+    parts: dict[str, list[np.ndarray]] = {f: [] for f in (*FIELDS, *OPTIONAL)}
     for arrays in iter_shards(directory, verify=verify):
-        for f in FIELDS:
+        for f in arrays:
             parts[f].append(arrays[f])
     if not parts["a"]:
         raise DatasetError(f"{directory}: the dataset has no shards")
-    return Dataset(manifest, **{f: np.concatenate(parts[f]) for f in FIELDS})
+    columns = {f: np.concatenate(parts[f]) for f in FIELDS}
+    optional = {f: np.concatenate(parts[f]) for f in OPTIONAL if len(parts[f]) == len(parts["a"])}
+    return Dataset(manifest, **columns, **optional)
 
 
 def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:

@@ -44,11 +44,13 @@ class PngCache:
         return encoded
 
 
-def decode_image(data: bytes, size: int | None = None) -> np.ndarray:
+def decode_image(data: bytes, size: int | None = None, at_least: int | None = None) -> np.ndarray:
     """PNG/JPEG bytes -> uint8 (H, W, 3).
 
     Refuses other sizes than `size` (checked before any pixel is decoded) and modes that do not
     convert to RGB without loss of what the camera saw: transparency, 16-bit, CMYK and such.
+    `at_least`: a JPEG may be decoded scaled down by 2, 4 or 8 (in the decoder, far cheaper than
+    decoding it whole) as long as its shorter side stays at least this many pixels.
     """
     try:
         with Image.open(io.BytesIO(data)) as img:
@@ -56,6 +58,11 @@ def decode_image(data: bytes, size: int | None = None) -> np.ndarray:
                 raise ImageError(f"image format {img.format} is not PNG or JPEG")
             if size is not None and img.size != (size, size):
                 raise ImageError(f"image is {img.size[0]}x{img.size[1]}, expected {size}x{size}")
+            if at_least is not None and img.format == "JPEG" and img.mode in ("RGB", "L"):
+                w, h = img.size
+                scale = at_least / min(w, h)
+                if scale < 1:
+                    img.draft(img.mode, (max(1, round(w * scale)), max(1, round(h * scale))))
             if img.mode not in ("RGB", "RGBA", "L", "P"):
                 raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
             if img.mode == "P" and "transparency" in img.info:

@@ -40,6 +40,11 @@ class Settings(BaseSettings):
     tasks: list[str] = Field(
         ["box_stacking"], description="gateway: the tasks served (JSON list); others get 404"
     )
+    task_specs: dict[str, dict] = Field(
+        {},
+        description="gateway: the specs of served tasks defined by their data (JSON object by "
+        "task); they have no simulator",
+    )
     deadline_s: float = Field(
         4.0, gt=0, description="per request: all its service calls, retries included"
     )

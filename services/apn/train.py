@@ -178,6 +178,7 @@ def evaluate_apn(apn_dir: Path | str, vae_dir: Path | str, test_dir: Path | str)
         "pick": 100.0 * pick_ok.mean(),
         "release": 100.0 * release_ok.mean(),
         "both": 100.0 * exact.all(1).mean(),
+        "per_field": per_field_errors(spec, predicted, u, meta.get("action_scaled")),
     }
     if spec.action.pixels:
         scaling = meta.get("action_scaled")
@@ -185,6 +186,25 @@ def evaluate_apn(apn_dir: Path | str, vae_dir: Path | str, test_dir: Path | str)
             raise ValueError(f"{apn_dir}: no training statistics (action_scaled); retrain it")
         out |= pixel_action_errors(spec, predicted, u, np.array(scaling["std"]))
     return out
+
+
+def per_field_errors(
+    spec: TaskSpec, predicted: np.ndarray, true: np.ndarray, scaled: dict | None
+) -> dict[str, dict[str, float]]:
+    """Each field's exact-match rate and, as Table II does, its squared error on the [0, 1]
+    scale standardised with the training split's spread (when the APN recorded it)."""
+    counts = np.array(spec.action.counts, dtype=np.float64)
+    std = np.ones(len(counts)) if scaled is None else np.array(scaled["std"], dtype=np.float64)
+    std = np.where(std > 0, std, 1.0)
+    error = ((predicted - true) / np.maximum(counts - 1, 1) / std) ** 2
+    return {
+        name: {
+            "exact": 100.0 * float((predicted[:, i] == true[:, i]).mean()),
+            "mse": float(error[:, i].mean()),
+            "mean_abs": float(np.abs(predicted[:, i] - true[:, i]).mean()),
+        }
+        for i, name in enumerate(spec.action.names)
+    }
 
 
 def pixel_action_errors(

@@ -42,3 +42,10 @@ def single_thread_torch() -> None:
     import torch
 
     torch.set_num_threads(1)
+
+
+def dataset_setting(data_dir: Path, key: str) -> Any:
+    """A training setting that an imported dataset's task.json declared (`settings`), or None."""
+    from shared.dataset import read_manifest
+
+    return (read_manifest(data_dir).get("settings") or {}).get(key)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from shared.tasks import task_names
@@ -31,6 +32,45 @@ def cmd_data_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_data_import(args: argparse.Namespace) -> int:
+    from services.data.importer import ImportConfig, import_dataset
+
+    cfg = ImportConfig(
+        source=args.source,
+        out=args.out,
+        name=args.name,
+        test_fraction=args.test_fraction,
+        seed=args.seed,
+        overwrite=args.overwrite,
+    )
+    result = import_dataset(cfg)
+    if result["resized"]:
+        print(
+            f"resized {result['resized']} of {result['images']} images to "
+            f"{result['image_size']} px; {result['cropped']} not square were centre-cropped "
+            f"first (aspect kept); sizes found: {result['image_sizes']}"
+        )
+    if result["own_episodes"]:
+        print("rows without an episode are each their own episode for the split")
+    for split, counts in result["splits"].items():
+        print(
+            f"{split}: {counts['tuples']} tuples ({counts['action_pairs']} action), "
+            f"{counts['episodes']} episodes -> {Path(args.out) / split}"
+        )
+    print(json.dumps(result))
+    return 0
+
+
+def cmd_data_export(args: argparse.Namespace) -> int:
+    from services.data.exporter import export_dataset
+
+    result = export_dataset(args.data, args.out, overwrite=args.overwrite)
+    if result["states_dropped"]:
+        print("states are not exported: the import format has none")
+    print(json.dumps(result))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     data = sub.add_parser("data", help="datasets").add_subparsers(dest="sub", required=True)
     gen = data.add_parser("generate", help="render a dataset of action and no-action pairs")
@@ -55,3 +95,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     gen.set_defaults(handler=cmd_data_generate)
+
+    imp = data.add_parser(
+        "import", help="recorded images + task.json + pairs.jsonl/csv -> OUT/train, OUT/test"
+    )
+    imp.add_argument("--from", dest="source", required=True, type=Path, help="folder to import")
+    imp.add_argument("--out", required=True, type=Path)
+    imp.add_argument("--name", help="task name instead of task.json's")
+    imp.add_argument(
+        "--test-fraction",
+        type=float,
+        default=0.2,
+        help="share of the episodes held out when the rows give no split",
+    )
+    imp.add_argument("--seed", type=int, default=0, help="seed of the split by episode")
+    imp.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    imp.set_defaults(handler=cmd_data_import)
+
+    exp = data.add_parser("export", help="dataset folders -> the import format (PNG + JSONL)")
+    exp.add_argument(
+        "--data", required=True, type=Path, action="append", help="dataset folder (repeatable)"
+    )
+    exp.add_argument("--out", required=True, type=Path)
+    exp.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    exp.set_defaults(handler=cmd_data_export)

@@ -10,9 +10,22 @@ from services.cli.common import single_thread_torch
 
 
 def cmd_eval_vfm(args: argparse.Namespace) -> int:
+    from services.encoder.checkpoint import read_vae_config
     from services.planner.eval_vfm import run_vfm_eval
     from services.planner.evaluate import plot_class_distances
 
+    spec = read_vae_config(args.model / "vae")["dataset"].get("spec")
+    if spec is not None and spec.get("state") is None:  # a task defined by its data
+        from services.planner.eval_data import run_data_eval
+
+        row = run_data_eval(
+            args.model, args.test, args.pairs, args.seed, args.max_paths, train_dir=args.train
+        )
+        if not args.json:
+            for key, value in row.items():
+                print(f"{key:>32}: {value}")
+        print(json.dumps(row))
+        return 0
     reader = args.reader or (args.model / "state_reader")
     row, analysis = run_vfm_eval(
         args.model,
@@ -47,10 +60,15 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
     from services.planner.action_plans import ActionPlanner
     from services.planner.build import load_labels
     from services.sim.closed_loop import PlanJudge, evaluate_system
-    from services.sim.worlds import make_world
+    from services.sim.worlds import has_world, make_world
 
     single_thread_torch()
     planner = ActionPlanner.from_model_dir(args.model)
+    if not has_world(planner.task.name):
+        raise ValueError(
+            f"task {planner.task.name!r} has no simulator (it is defined by its data): "
+            "lsr eval system needs one; lsr eval vfm and lsr eval apn need none"
+        )
     labels = load_labels(Path(args.model) / "roadmap", planner.task.name)
     task = planner.task
     judge = PlanJudge(task, [task.array_to_state(s) for s in labels.states])
@@ -67,7 +85,11 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     evals = sub.add_parser("eval", help="evaluations").add_subparsers(dest="sub", required=True)
-    vfm = evals.add_parser("vfm", help="Table I: plans between unseen test images")
+    vfm = evals.add_parser(
+        "vfm",
+        help="Table I: plans between unseen test images (without state labels for a task "
+        "defined by its data: roadmap size, nodes per episode, test images held by their node)",
+    )
     vfm.add_argument("--model", required=True, type=Path, help="folder with vae/ and roadmap/")
     vfm.add_argument("--test", required=True, type=Path)
     vfm.add_argument("--pairs", type=int, default=1000)

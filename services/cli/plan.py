@@ -17,9 +17,28 @@ def _image_or_state(task, world, image: Path | None, state: str | None, rng, nam
         raise ValueError(f"give exactly one of --{name}-image and --{name}-state")
     if image is not None:
         return decode_image(Path(image).read_bytes(), size=world.image_size), None
+    if world.task is None:
+        raise ValueError(
+            f"task {task.name!r} has no simulator to render --{name}-state; give --{name}-image"
+        )
     parsed = task.parse_state(json_arg(state))
     world.reset(parsed, rng)
     return world.render(), parsed
+
+
+class _NoWorld:
+    """Stands in for the world of a task without a simulator: images only."""
+
+    task = None
+
+    def __init__(self, planner) -> None:
+        self.image_size = planner.image_size
+
+    def __enter__(self) -> _NoWorld:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -27,13 +46,19 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from PIL import Image
 
     from services.planner.action_plans import ActionPlanner
-    from services.planner.sheets import plan_sheet
+    from services.planner.sheets import plan_sheet, spec_action_pixels
     from services.sim.worlds import make_world
+    from shared.tasks import has_simulator
 
     single_thread_torch()
     planner = ActionPlanner.from_model_dir(args.model)
     rng = np.random.default_rng(args.seed)
-    with make_world(planner.task.name, planner.image_size) as world:
+    opened = (
+        make_world(planner.task.name, planner.image_size)
+        if has_simulator(planner.task.name)
+        else _NoWorld(planner)
+    )
+    with opened as world:
         start, _ = _image_or_state(
             planner.task, world, args.start_image, args.start_state, rng, "start"
         )
@@ -43,9 +68,17 @@ def cmd_plan(args: argparse.Namespace) -> int:
         plans = planner.plan(start, goal, max_plans=args.max_plans)
         args.out.mkdir(parents=True, exist_ok=True)
         for k, plan in enumerate(plans):
-            sheet = plan_sheet(
-                plan, world.action_pixels, arrows=bool(world.task.spec.action.pixels)
-            )
+            if world.task is None:  # a task defined by its data: its spec says where
+                sheet = plan_sheet(
+                    plan,
+                    spec_action_pixels(planner.task, planner.image_size),
+                    arrows=True,
+                    text=lambda a: json.dumps(planner.task.action_to_json(a)),
+                )
+            else:
+                sheet = plan_sheet(
+                    plan, world.action_pixels, arrows=bool(world.task.spec.action.pixels)
+                )
             Image.fromarray(sheet).save(args.out / f"plan_{k}.png")
     summary = {"plans": [p.to_json(planner.task) for p in plans]}
     if not plans:

@@ -8,13 +8,23 @@ from pathlib import Path
 
 
 def cmd_build_roadmap(args: argparse.Namespace) -> int:
+    from services.cli.common import dataset_setting
     from services.encoder.checkpoint import read_vae_config
     from services.planner.build import build_from_dataset, default_metric
     from services.planner.roadmap import RoadmapConfig
 
     metric = args.metric or default_metric(read_vae_config(args.vae))
+    # Flags first, then the dataset's task.json settings, then the defaults (w 1; pruning
+    # automatic, as RoadmapConfig's min_samples None).
+    w_eps = args.w_eps if args.w_eps is not None else dataset_setting(args.data, "w_eps")
+    min_samples = args.min_samples
+    if min_samples is None:
+        min_samples = dataset_setting(args.data, "min_samples")
     config = RoadmapConfig(
-        metric=metric, w_eps=args.w_eps, min_samples=args.min_samples, eps_rule=args.eps_rule
+        metric=metric,
+        w_eps=1.0 if w_eps is None else float(w_eps),
+        min_samples=None if min_samples is None else int(min_samples),
+        eps_rule=args.eps_rule,
     )
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
@@ -33,13 +43,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "paper: Algorithm 1's mu0 + w_eps sigma0",
     )
     roadmap.add_argument(
-        "--w-eps", type=float, default=1.0, help="w of the paper's rule (and its fallback)"
+        "--w-eps",
+        type=float,
+        help="w of the paper's rule (and its fallback); default: task.json's settings, else 1",
     )
     roadmap.add_argument(
         "--min-samples",
         type=int,
-        default=None,
-        help="prune regions with fewer members (default: a tenth of the typical region, >= 1)",
+        help="prune regions with fewer members (default: the dataset's task.json settings, "
+        "else a tenth of the typical region, >= 1)",
     )
     roadmap.add_argument(
         "--metric",

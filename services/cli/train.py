@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from services.cli.common import single_thread_torch
+from services.cli.common import dataset_setting, single_thread_torch
 
 
 def cmd_train_vae(args: argparse.Namespace) -> int:
@@ -25,6 +25,10 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         print(f"d_m from the baseline's mean action-pair distance: {dm:.3f}")
     elif args.dm is not None:
         dm = float(args.dm)
+    else:  # a task defined by its data may set its own (task.json's settings.d_m)
+        dm = dataset_setting(args.data, "d_m")
+        if dm is not None:
+            print(f"d_m {dm} from the dataset's task.json settings")
     lr_drop = args.lr_drop
     if args.lr_drop_epoch is not None:
         if args.epochs is None:
@@ -84,7 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--dm",
         default=None,
         help="action margin d_m: a number, or auto "
-        "(mean action-pair distance under --baseline); default: the paper's value",
+        "(mean action-pair distance under --baseline); default: the dataset's task.json "
+        "settings.d_m, else the paper's value",
     )
     vae.add_argument("--baseline", type=Path, help="VAE-b folder, for --dm auto")
     length = vae.add_mutually_exclusive_group()

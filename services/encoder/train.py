@@ -250,6 +250,7 @@ def train_vae(
         "dataset": {
             "path": str(data_dir),
             **{k: data.manifest[k] for k in ("task", "seed", "image_size", "counts")},
+            "spec": data.spec.to_json(),  # serving a task defined by its data needs it
         },
         "train_seconds": time.perf_counter() - started,
         "final": record,

@@ -47,7 +47,7 @@ from shared.bus import (
     open_session,
 )
 from shared.settings import Settings
-from shared.tasks import get_task, task_names
+from shared.tasks import get_task, known_tasks
 from shared.validation import FieldError
 
 log = logging.getLogger(__name__)
@@ -201,8 +201,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get("/tasks/{task}")
     def task_info(task: str) -> dict[str, Any]:
-        if task not in task_names():
-            raise HTTPException(404, f"unknown task {task!r}; known tasks are {task_names()}")
+        if task not in known_tasks():
+            raise HTTPException(404, f"unknown task {task!r}; known tasks are {known_tasks()}")
         return get_task(task).info()
 
     def deadline(request: Request) -> float:

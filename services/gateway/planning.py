@@ -38,7 +38,8 @@ from shared.client import PlanningClient
 from shared.images import ImageError, PngCache, decode_image, png_b64
 from shared.messages import RunRequest, WireArray
 from shared.settings import Settings
-from shared.tasks import get_task
+from shared.tasks import declare_task, get_task, has_simulator
+from shared.tasks.spec import TaskSpec
 from shared.validation import FieldError, parse_state
 
 INFO_TTL_S = 10.0
@@ -71,6 +72,23 @@ class Gateway:
         self._clients: dict[str, PlanningClient] = {}
         self._sizes: dict[str, tuple[float, int]] = {}  # task -> (when asked, image size)
         self.pngs = PngCache()
+        for spec in settings.task_specs.values():  # tasks defined by their data
+            declare_task(TaskSpec.from_json(spec))
+
+    def services(self, task: str) -> tuple[str, ...]:
+        """The services that serve `task`: no sim for a task without a simulator."""
+        return SERVICES if has_simulator(task) else tuple(s for s in SERVICES if s != "sim")
+
+    def simulated(self, task: str, route: str) -> str:
+        """`task` when it is served and has a simulator; a FieldError on `task` otherwise."""
+        self.served(task)
+        if not has_simulator(task):
+            raise FieldError(
+                "task",
+                f"task {task!r} has no simulator (it is defined by its data): {route} needs "
+                "one; /plan works with images as start and goal",
+            )
+        return task
 
     def served(self, task: str) -> str:
         if task not in self.settings.tasks:
@@ -96,13 +114,13 @@ class Gateway:
     def health(self) -> Health:
         asked = {
             (service, task): instances(self.session, service, task)
-            for service in SERVICES
             for task in self.settings.tasks
+            for service in self.services(task)
         }  # all in flight at once
         found = {key: collect() for key, collect in asked.items()}
         services: dict[str, ServiceHealth] = {}
         for service in SERVICES:
-            per_task = [found[(service, task)] for task in self.settings.tasks]
+            per_task = [found[(service, t)] for t in self.settings.tasks if (service, t) in found]
             services[service] = ServiceHealth(
                 status="ok" if all(per_task) else "unavailable",
                 instances=[
@@ -176,13 +194,14 @@ class Gateway:
         return response, server_timing(outcome.timings, (time.perf_counter() - started) * 1e3)
 
     def render(self, request: RenderRequest, deadline: float | None = None) -> RenderResponse:
-        state = parse_state(get_task(self.served(request.task)), "state", request.state)
+        task = get_task(self.simulated(request.task, "/render"))
+        state = parse_state(task, "state", request.state)
         deadline = deadline or time.monotonic() + self.settings.deadline_s
         image = self.client(request.task).render([state], request.seed, deadline)[0]
         return RenderResponse(image=png_b64(image))
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:
-        logic = get_task(self.served(request.task))
+        logic = get_task(self.simulated(request.task, "/execute"))
         start = parse_state(logic, "start.state", request.start.state)
         goal_state = goal_image = None
         if request.goal.state is not None:

@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from shared.bus import ROBOT_ID_PATTERN
 from shared.messages import MAX_PLANS
-from shared.tasks import task_names
+from shared.tasks import known_tasks
 
 
 class Strict(BaseModel):
@@ -21,8 +21,8 @@ class TaskRequest(Strict):
     @field_validator("task")
     @classmethod
     def _known_task(cls, task: str) -> str:
-        if task not in task_names():
-            raise ValueError(f"unknown task {task!r}; known tasks are {task_names()}")
+        if task not in known_tasks():
+            raise ValueError(f"unknown task {task!r}; known tasks are {known_tasks()}")
         return task
 
 

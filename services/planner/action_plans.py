@@ -11,6 +11,7 @@ from services.apn.train import load_apn, propose
 from services.encoder.checkpoint import load_vae
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
+from services.runtime import declare_model_task
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
 from shared.tasks.base import Task
@@ -31,6 +32,7 @@ class ActionPlanner:
         vae, config = load_vae(model_dir / "vae")
         apn, _ = load_apn(model_dir / "apn")
         roadmap = Roadmap.load(model_dir / "roadmap")
+        declare_model_task(config)
         return cls(get_task(config["dataset"]["task"]), VisualPlanner(vae, roadmap), apn)
 
     @property

@@ -10,6 +10,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from shared.plans import VisualActionPlan
+from shared.tasks.base import Task
 
 PICK = (40, 90, 255)  # blue, as in the paper
 RELEASE = (20, 200, 60)  # green
@@ -23,8 +24,32 @@ def describe(action: Any) -> str:
     return text + (f" h{action.height}" if hasattr(action, "height") else "")
 
 
+def spec_action_pixels(task: Task, image_size: int) -> ActionPixels | None:
+    """Pick and release pixels of a task whose spec declares `pick.row`, `pick.col`,
+    `release.row`, `release.col` as pixel fields (a task defined by its data); None otherwise."""
+    action = task.spec.action
+    wanted = [f"{part}.{axis}" for part in ("pick", "release") for axis in ("row", "col")]
+    if any(action.pixels.get(name) != name.split(".")[1] for name in wanted):
+        return None
+    scale = image_size / float(action.frame or image_size)
+
+    def pixels(a: Any) -> tuple[Point, Point]:
+        u = task.action_to_array(a).reshape(-1)
+        low = [int(action.encodings.get(n, {}).get("low", 0)) for n in wanted]
+        pr, pc, rr, rc = (
+            int(u[action.names.index(n)]) + o for n, o in zip(wanted, low, strict=True)
+        )
+        return ((pc + 0.5) * scale, (pr + 0.5) * scale), ((rc + 0.5) * scale, (rr + 0.5) * scale)
+
+    return pixels
+
+
 def plan_sheet(
-    plan: VisualActionPlan, action_pixels: ActionPixels, arrows: bool = False, scale: int = 3
+    plan: VisualActionPlan,
+    action_pixels: ActionPixels | None,
+    arrows: bool = False,
+    scale: int = 3,
+    text: Callable[[Any], str] = describe,
 ) -> np.ndarray:
     """Images in a row, start to goal; each image before an action shows where it picks and
     releases (circles, or an arrow from pick to release); the action is written underneath."""
@@ -39,11 +64,13 @@ def plan_sheet(
         label = f"node {plan.nodes[i]}" + (" (start)" if i == 0 else "")
         if i < len(plan.actions) and plan.actions[i] is not None:
             a = plan.actions[i]
-            (px, py), (rx, ry) = action_pixels(a)
+            (px, py), (rx, ry) = action_pixels(a) if action_pixels else ((-99, -99), (-99, -99))
             pick = (x0 + px * scale, py * scale)
             release = (x0 + rx * scale, ry * scale)
             r = 4 * scale
-            if arrows:
+            if action_pixels is None:
+                pass  # nothing in the image to mark
+            elif arrows:
                 _arrow(draw, pick, release, width=max(2, scale))
                 draw.ellipse(
                     [pick[0] - r, pick[1] - r, pick[0] + r, pick[1] + r], outline=PICK, width=3
@@ -53,7 +80,7 @@ def plan_sheet(
                     draw.ellipse([cx - r, cy - r, cx + r, cy + r], outline=colour, width=3)
             draw.text(
                 (x0 + 3, tile_h + 15),
-                f"{describe(a)} p={plan.confidences[i]:.2f}",
+                f"{text(a)} p={plan.confidences[i]:.2f}",
                 fill="black",
             )
         elif i == len(plan.images) - 1:

@@ -35,6 +35,11 @@ class ArraySpec:
     # frame of `frame` pixels (LeRobot keeps such facts in a feature's `info`).
     pixels: dict[str, str] = field(default_factory=dict)
     frame: int | None = None
+    # How an element's JSON value maps to its stored integer, for declared (imported) tasks:
+    # {"low": L} an integer L..L+count-1 stored as value - L; {"categories": [...]} a name stored
+    # as its index; {"float": [lo, hi]} a number stored as the nearest of `count` evenly spaced
+    # levels from lo to hi. Absent: the integer is stored as it is.
+    encodings: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
@@ -63,6 +68,40 @@ class ArraySpec:
             raise SpecError(f"spec: pixels must map element names to 'row' or 'col' ({unknown})")
         if self.pixels and self.frame is None:
             raise SpecError("spec: pixel elements need a frame size")
+        for name, encoding in self.encodings.items():
+            self._check_encoding(name, encoding)
+
+    def _check_encoding(self, name: str, encoding: Any) -> None:
+        if name not in self.names:
+            raise SpecError(f"spec: encoding for unknown element {name!r}")
+        count = self.counts[self.names.index(name)]
+        if not isinstance(encoding, dict) or len(encoding) != 1:
+            raise SpecError(f"spec: encoding of {name}: expected one of low, categories, float")
+        ((kind, value),) = encoding.items()
+        if kind == "low":
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise SpecError(f"spec: encoding of {name}: low must be an integer")
+        elif kind == "categories":
+            if (
+                not isinstance(value, list)
+                or len(value) != count
+                or not all(isinstance(c, str) and c for c in value)
+                or len(set(value)) != len(value)
+            ):
+                raise SpecError(
+                    f"spec: encoding of {name}: {count} distinct non-empty category names needed"
+                )
+        elif kind == "float":
+            if (
+                not isinstance(value, list)
+                or len(value) != 2
+                or not all(isinstance(v, int | float) and np.isfinite(v) for v in value)
+                or not value[0] < value[1]
+                or count < 2
+            ):
+                raise SpecError(f"spec: encoding of {name}: float needs [low, high], low < high")
+        else:
+            raise SpecError(f"spec: encoding of {name}: unknown kind {kind!r}")
 
     def validate(self, array: np.ndarray, field_name: str, batched: bool = True) -> None:
         """Raise SpecError naming the field unless `array` (a batch when batched) fits."""
@@ -97,6 +136,8 @@ class ArraySpec:
         if self.pixels:
             out["pixels"] = dict(self.pixels)
             out["frame"] = self.frame
+        if self.encodings:
+            out["encodings"] = {k: dict(v) for k, v in self.encodings.items()}
         return out
 
     @classmethod
@@ -113,6 +154,7 @@ class ArraySpec:
                 nullable=bool(obj.get("nullable", False)),
                 pixels=dict(obj.get("pixels", {})),
                 frame=obj.get("frame"),
+                encodings=dict(obj.get("encodings", {})),
             )
         except KeyError as exc:
             raise SpecError(f"{where}: missing {exc.args[0]!r}") from None

@@ -1,0 +1,1 @@
+"""Recorded datasets in and out: `lsr data import` and `lsr data export`."""
