@@ -200,7 +200,9 @@ class Gateway:
         image = self.client(request.task).render([state], request.seed, deadline)[0]
         return RenderResponse(image=png_b64(image))
 
-    def execute(self, request: ExecuteRequest) -> ExecuteResponse:
+    def run_request(self, request: ExecuteRequest, progress: str | None = None) -> RunRequest:
+        """The sim's request for an execution, checked here so that bad input (or a task with
+        no simulator) gets a 4xx before anything runs; `progress` names a step stream."""
         logic = get_task(self.simulated(request.task, "/execute"))
         start = parse_state(logic, "start.state", request.start.state)
         goal_state = goal_image = None
@@ -209,7 +211,7 @@ class Gateway:
         else:
             size = self.image_size(request.task, time.monotonic() + self.settings.deadline_s)
             goal_image = WireArray.of(decode_b64_image("goal.image", request.goal.image, size))
-        run = RunRequest(
+        return RunRequest(
             task=request.task,
             start=logic.state_to_json(start),
             goal_state=goal_state,
@@ -217,7 +219,11 @@ class Gateway:
             max_steps=request.max_steps,
             max_plans=request.max_plans,
             seed=request.seed,
+            progress=progress,
         )
+
+    def execute(self, request: ExecuteRequest) -> ExecuteResponse:
+        run = self.run_request(request)
         deadline = self.settings.deadline_s + self.settings.execute_step_s * request.max_steps
         reply = self.client(request.task).run(run, deadline)
         return ExecuteResponse(

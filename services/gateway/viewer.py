@@ -18,7 +18,6 @@ import json
 import logging
 import queue
 import threading
-import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -34,7 +33,7 @@ from pydantic import BaseModel, Field
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from services.gateway.planning import Gateway, decode_b64_image
+from services.gateway.planning import Gateway
 from services.gateway.schemas import ExecuteRequest, TaskRequest
 from shared.bus import call, progress_key
 from shared.images import encode_png, png_b64
@@ -54,7 +53,7 @@ from shared.messages import (
 )
 from shared.tasks import get_task
 from shared.tasks.base import TaskError
-from shared.validation import FieldError, parse_state
+from shared.validation import FieldError
 
 log = logging.getLogger(__name__)
 STATIC = Path(__file__).resolve().parent / "static"
@@ -206,35 +205,12 @@ class Viewer:
         ]
         return PixelsResponse(image_size=reply.image_size, marks=marks)
 
-    def run_request(self, body: ExecuteRequest, progress: str) -> RunRequest:
-        """The sim's request for `body`, checked here so that bad input gets a 4xx before the
-        stream starts (as `Gateway.execute` checks it)."""
-        logic = get_task(self.gateway.served(body.task))
-        start = parse_state(logic, "start.state", body.start.state)
-        goal_state = goal_image = None
-        if body.goal.state is not None:
-            goal_state = logic.state_to_json(parse_state(logic, "goal.state", body.goal.state))
-        else:
-            deadline = time.monotonic() + self.gateway.settings.deadline_s
-            size = self.gateway.image_size(body.task, deadline)
-            goal_image = WireArray.of(decode_b64_image("goal.image", body.goal.image, size))
-        return RunRequest(
-            task=body.task,
-            start=logic.state_to_json(start),
-            goal_state=goal_state,
-            goal_image=goal_image,
-            max_steps=body.max_steps,
-            max_plans=body.max_plans,
-            seed=body.seed,
-            progress=progress,
-        )
-
     def execute_events(self, body: ExecuteRequest) -> Iterator[str]:
         """Server-sent events of one episode: `step` per action, then `done` (or `error`).
 
         The input is checked now, before any event, so that bad input gets a 4xx reply."""
         run_id = uuid.uuid4().hex
-        return self._episode(body, self.run_request(body, run_id), run_id)
+        return self._episode(body, self.gateway.run_request(body, run_id), run_id)
 
     def _episode(self, body: ExecuteRequest, run: RunRequest, run_id: str) -> Iterator[str]:
         from services.gateway.app import error_body  # app imports this module

@@ -133,7 +133,7 @@ def test_served_task_plans_from_images(served):
             task.parse_action(action)  # the declared fields, in range
 
 
-@pytest.mark.parametrize("route", ["/render", "/execute"])
+@pytest.mark.parametrize("route", ["/render", "/execute", "/execute/stream"])
 def test_render_and_execute_say_the_task_has_no_simulator(served, route):
     http, _ = served
     body = {"task": "square_moving", "state": {}} if route == "/render" else {
