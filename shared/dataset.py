@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import shutil
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -157,6 +158,13 @@ def load_dataset(directory: Path | str, verify: bool = True) -> Dataset:
 
 def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
     (directory / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+
+
+def publish(partial: Path, out: Path) -> None:
+    """Move a finished folder built beside its destination into place, replacing what was there."""
+    if out.exists():
+        shutil.rmtree(out)
+    partial.rename(out)
 
 
 def shard_name(index: int) -> str:

@@ -101,9 +101,7 @@ def export_dataset(
         bar.close()
         text = json.dumps(declaration.to_json(), indent=2) + "\n"
         (partial / TASK_FILE).write_text(text)
-        if out.exists():
-            shutil.rmtree(out)
-        partial.rename(out)
+        ds.publish(partial, out)
     finally:
         shutil.rmtree(partial, ignore_errors=True)
     return {

@@ -235,9 +235,7 @@ def import_dataset(cfg: ImportConfig, progress: bool = True) -> dict[str, Any]:
         splits = _write(cfg, found, partial, progress)
         text = json.dumps(found.declaration.to_json(), indent=2) + "\n"
         (partial / TASK_FILE).write_text(text)
-        if out.exists():
-            shutil.rmtree(out)
-        partial.rename(out)
+        ds.publish(partial, out)
     finally:
         shutil.rmtree(partial, ignore_errors=True)
     return {

@@ -239,7 +239,5 @@ def generate(
         "physics_retries": retries,
     }
     ds.write_manifest(partial, manifest)
-    if out.exists():
-        shutil.rmtree(out)
-    partial.rename(out)
+    ds.publish(partial, out)
     return {**manifest, "seconds": seconds, "images_per_second": 2 * cfg.pairs / seconds}
