@@ -11,7 +11,7 @@ for metric in "$@"; do
     [ "$head" = regress ] && [ "$metric" != l1 ] && continue
     out=$run/apn_$head
     [ -f $out/config.json ] || \
-      $LSR train apn --vae $run/vae --data $DATA/train --head $head --seed 0 --out $out
+      $LSR train apn --vae $run/vae --data $DATA/train --head $head --epochs 200 --seed 0 --out $out
     $LSR eval apn --model $run --apn $out --test $DATA/test --json | tail -n 1 > $out/eval.json
     cat $out/eval.json
   done

@@ -37,7 +37,8 @@ for metric in "${metrics[@]}"; do
     > $run/table1.json
   for seed in 0 1 2 3 4; do
     [ -f $run/apn_s$seed/config.json ] || \
-      $LSR train apn --vae $run/vae --data $DATA/train --seed $seed --out $run/apn_s$seed
+      $LSR train apn --vae $run/vae --data $DATA/train --epochs 200 --seed $seed \
+        --out $run/apn_s$seed
     $LSR eval apn --model $run --apn $run/apn_s$seed --test $DATA/test --json | tail -n 1 \
       > $run/apn_s$seed/eval.json
   done

@@ -3,7 +3,8 @@
 For each size: `lsr data generate`, `lsr train vae`, `lsr build-roadmap` and `lsr train apn`
 with no tuning flags, then Table I on unseen test data (`lsr eval vfm`), the same VAE with
 Algorithm 1's roadmap as written (`--eps-rule paper --min-samples 3`) for comparison, and the
-closed loop in simulation (`lsr eval system`). Prints a row per size and writes RESULTS.json
+APN on the unseen action pairs (`lsr eval apn`) and the closed loop in simulation
+(`lsr eval system`). Prints a row per size and writes RESULTS.json
 and a figure. The CPU time of each stage is that of its child processes (user + system).
 
 Usage:
@@ -97,6 +98,11 @@ def run_size(args: argparse.Namespace, pairs: int, test: Path) -> dict[str, Any]
         out = stage("eval_vfm", [*evaluate, "--model", str(model)], run / "-", times)
         record["table1"] = last_json(out)
         record_path.write_text(json.dumps(record, indent=1))
+    if "apn" not in record:
+        out = stage("eval_apn", ["eval", "apn", "--model", str(model), "--test", str(test),
+                                 "--json"], run / "-", times)  # fmt: skip
+        record["apn"] = last_json(out)
+        record_path.write_text(json.dumps(record, indent=1))
     paper = run / "paper"
     if "table1_paper_rule" not in record:
         paper.mkdir(exist_ok=True)
@@ -124,6 +130,7 @@ def run_size(args: argparse.Namespace, pairs: int, test: Path) -> dict[str, Any]
 def row(pairs: int, record: dict[str, Any]) -> dict[str, Any]:
     t1, paper = record["table1"], record["table1_paper_rule"]
     loop = record.get("closed_loop", {})
+    apn = record.get("apn", {})
     times = record["times"]
     pipeline = ("generate", "vae", "roadmap", "apn")
     return {
@@ -137,6 +144,8 @@ def row(pairs: int, record: dict[str, Any]) -> dict[str, Any]:
         "detour_ratio": t1.get("detour_ratio"),
         "paper_rule_all_any_trans": [paper["all"], paper["any"], paper["trans"]],
         "paper_rule_nodes_edges": [paper["nodes"], paper["edges"]],
+        # the same move as the demonstrator's (pixel actions), else pick and release exact
+        "apn_right": apn.get("same_move", apn.get("both")),
         "closed_loop_success": loop.get("success"),
         "closed_loop_steps_over_optimal": loop.get("steps_over_optimal"),
         "vae_cpu_minutes": times["vae"]["cpu"] / 60 if "vae" in times else None,
@@ -215,14 +224,16 @@ def main() -> None:
         rows.append(row(pairs, run_size(args, pairs, test)))
         print(json.dumps(rows[-1]), flush=True)
     (args.out / "RESULTS.json").write_text(json.dumps(rows, indent=1) + "\n")
-    header = "tuples nodes edges   All   Any Trans detour loop% | paper rule All  cpu_min"
+    header = "tuples nodes edges   All   Any Trans detour  apn% loop% | paper rule All  cpu_min"
     print(header)
     for r in rows:
-        loop = r["closed_loop_success"]
+        loop, apn = (
+            "-" if v is None else f"{v:5.1f}" for v in (r["closed_loop_success"], r["apn_right"])
+        )
         print(
             f"{r['tuples']:6d} {r['nodes']:5d} {r['edges']:5d} {r['all']:5.1f} {r['any']:5.1f} "
             f"{r['trans']:5.1f} {r['detour_ratio'] or 0:6.3f} "
-            f"{'-' if loop is None else f'{loop:5.1f}'} | {r['paper_rule_all_any_trans'][0]:5.1f}"
+            f"{apn} {loop} | {r['paper_rule_all_any_trans'][0]:5.1f}"
             f"  {r['pipeline_cpu_minutes']:6.1f}"
         )
     if args.figure:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -20,18 +21,25 @@ from shared.dataset import load_dataset
 from shared.tasks import get_task
 from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
+from shared.training import minibatches
 
 FORMAT = "lsr-apn"
 VERSION = 1
 
 
+# The steps the paper's 200 epochs gave the shipped cloth-folding APN (2080 samples, batch 64),
+# rounded: with epochs, the 500-tuple run got a quarter of them and missed a rare move (issue 14).
+DEFAULT_STEPS = 8000
+
+
 @dataclass(frozen=True)
 class APNTrainConfig:
     head: Head | None = None  # None: classify small ranges (cells), hybrid when pixels are in it
-    epochs: int = 200
+    steps: int = DEFAULT_STEPS
+    epochs: int | None = None  # passes over the training samples instead of `steps`
     batch_size: int = 64
     lr: float = 1e-2
-    lr_drops: tuple[int, ...] = (50, 150)  # lr / 10 from each of these epochs
+    lr_drops: tuple[float, ...] = (0.25, 0.75)  # lr / 10 after these fractions of the run
     samples: int = 1  # S: draws from q(z|I) added beside the means
     val_fraction: float = 0.2
     seed: int = 0
@@ -39,8 +47,18 @@ class APNTrainConfig:
     def __post_init__(self) -> None:
         if not 0 < self.val_fraction < 1:
             raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
-        if self.epochs < 1 or self.samples < 0:
-            raise ValueError("epochs must be >= 1 and samples >= 0")
+        if self.steps < 1 or (self.epochs is not None and self.epochs < 1):
+            raise ValueError("steps and epochs must be >= 1")
+        if self.samples < 0:
+            raise ValueError(f"samples must be >= 0, got {self.samples}")
+        if not all(0 <= d <= 1 for d in self.lr_drops):
+            raise ValueError(f"lr_drops are fractions of the run, got {self.lr_drops}")
+
+    def total_steps(self, samples: int) -> int:
+        """Steps of the run on `samples` training samples (pairs times S + 1)."""
+        if self.epochs is None:
+            return self.steps
+        return self.epochs * math.ceil(samples / self.batch_size)
 
 
 def action_pair_latents(vae_dir: Path | str, data_dir: Path | str):
@@ -88,29 +106,40 @@ def train_apn(
     head = cfg.head or ("classify" if max(sizes) <= HYBRID_MAX_CLASSES else "hybrid")
     model = APN(APNConfig(latent_dim=mu1.shape[1], action_sizes=sizes, head=head))
     optimiser = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    generator = torch.Generator().manual_seed(cfg.seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    total = cfg.total_steps(len(tr[2]))
+    per_pass = math.ceil(len(tr[2]) / cfg.batch_size)  # validated after every pass; best kept
+    drops = [round(d * total) for d in cfg.lr_drops]
+    batches = minibatches(len(tr[2]), cfg.batch_size, torch.Generator().manual_seed(cfg.seed))
     best: dict[str, Any] = {"val_loss": float("inf")}
     best_state: dict[str, torch.Tensor] = {}
     log = []
     started = time.perf_counter()
-    for epoch in tqdm(range(cfg.epochs), desc=f"train apn-{head}", disable=not progress):
-        lr = cfg.lr / 10 ** sum(epoch >= d for d in cfg.lr_drops)
+    for step in tqdm(range(total), desc=f"train apn-{head}", unit="step", disable=not progress):
+        lr = cfg.lr / 10 ** sum(step >= d for d in drops)
         for group in optimiser.param_groups:
             group["lr"] = lr
         model.train()
-        for idx in torch.randperm(len(tr[2]), generator=generator).split(cfg.batch_size):
-            loss = model.loss(model(tr[0][idx], tr[1][idx]), tr[2][idx])
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            optimiser.step()
+        idx = next(batches)
+        loss = model.loss(model(tr[0][idx], tr[1][idx]), tr[2][idx])
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+        if (step + 1) % per_pass and step + 1 != total:
+            continue
         model.eval()
         with torch.no_grad():
             output = model(va[0], va[1])
             val_loss = model.loss(output, va[2]).item()
             both = (model.predict(output)[0] == va[2]).all(-1).float().mean().item()
-        record = {"epoch": epoch + 1, "lr": lr, "val_loss": val_loss, "val_both": 100 * both}
+        record = {
+            "step": step + 1,
+            "epoch": math.ceil((step + 1) / per_pass),
+            "lr": lr,
+            "val_loss": val_loss,
+            "val_both": 100 * both,
+        }
         log.append(record)
         if val_loss < best["val_loss"]:
             best = record

@@ -72,7 +72,13 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
     from services.apn.train import APNTrainConfig, train_apn
 
     single_thread_torch()  # a 7k-parameter MLP: threads only add overhead
-    cfg = APNTrainConfig(head=args.head, epochs=args.epochs, samples=args.samples, seed=args.seed)
+    cfg = APNTrainConfig(
+        head=args.head,
+        **({"steps": args.steps} if args.steps is not None else {}),
+        epochs=args.epochs,
+        samples=args.samples,
+        seed=args.seed,
+    )
     meta = train_apn(args.vae, args.data, args.out, cfg)
     print(json.dumps({"best": meta["best"], "pairs": meta["pairs"], "seconds": meta["seconds"]}))
     return 0
@@ -137,7 +143,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=["classify", "regress", "hybrid"],
         help="default: classify small ranges; hybrid (pixels regressed) for pixel actions",
     )
-    apn.add_argument("--epochs", type=int, default=200)
+    length = apn.add_mutually_exclusive_group()
+    length.add_argument(
+        "--steps",
+        type=int,
+        help="optimiser steps, whatever the dataset's size "
+        "(default: services.apn.train.DEFAULT_STEPS, 8000)",
+    )
+    length.add_argument(
+        "--epochs", type=int, help="passes over the data instead (the shipped models: 200)"
+    )
     apn.add_argument("--samples", type=int, default=1, help="S draws from q(z|I) per pair")
     apn.add_argument("--seed", type=int, default=0)
     apn.set_defaults(handler=cmd_train_apn)

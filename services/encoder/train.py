@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -17,6 +16,7 @@ from tqdm import tqdm
 from services.encoder.checkpoint import encode_images, load_vae, save_vae
 from services.encoder.model import VAE, VAEConfig, to_tensor
 from shared.dataset import Dataset, load_dataset
+from shared.training import minibatches
 
 Metric = Literal["l1", "l2", "inf", "none"]
 METRIC_P = {"l1": 1.0, "l2": 2.0, "inf": math.inf}
@@ -150,14 +150,6 @@ def dm_from_baseline(baseline_dir: Path | str, data: Dataset, metric: str) -> fl
     return float(latent_distance(mu1, mu2, metric).mean())
 
 
-def _batches(n: int, batch_size: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
-    """Minibatch indices forever: a fresh permutation a pass, the last batch of a pass short."""
-    while True:
-        order = torch.randperm(n, generator=generator)
-        for start in range(0, n, batch_size):
-            yield order[start : start + batch_size]
-
-
 def train_vae(
     data_dir: Path | str,
     out_dir: Path | str,
@@ -182,7 +174,7 @@ def train_vae(
     total_steps = cfg.total_steps(n)
     drop_step = round(cfg.lr_drop * total_steps)
     monitor = np.random.default_rng(cfg.seed).permutation(n)[: cfg.monitor_pairs]
-    batches = _batches(n, cfg.batch_size, torch.Generator().manual_seed(cfg.seed))
+    batches = minibatches(n, cfg.batch_size, torch.Generator().manual_seed(cfg.seed))
     log_path = out_dir / "log.jsonl"
     log_path.write_text("")
     started = time.perf_counter()

@@ -5,7 +5,14 @@ import pytest
 import torch
 
 from services.apn.model import APN, APNConfig
-from services.apn.train import APNTrainConfig, evaluate_apn, load_apn, propose
+from services.apn.train import (
+    DEFAULT_STEPS,
+    APNTrainConfig,
+    evaluate_apn,
+    load_apn,
+    propose,
+    train_apn,
+)
 from shared.checkpoint import verify
 
 
@@ -34,6 +41,26 @@ def test_bad_configs():
         APNConfig(head="guess")
     with pytest.raises(ValueError, match="val_fraction"):
         APNTrainConfig(val_fraction=0)
+    with pytest.raises(ValueError, match="fractions"):
+        APNTrainConfig(lr_drops=(50, 150))  # epochs, as the config had them before issue 14
+
+
+def test_runs_are_counted_in_steps_whatever_the_data_size():
+    cfg = APNTrainConfig()
+    assert cfg.total_steps(100) == cfg.total_steps(10_000) == DEFAULT_STEPS
+    assert APNTrainConfig(epochs=2).total_steps(130) == 2 * 3  # passes of batches of 64
+
+
+def test_training_in_steps_validates_every_pass_and_drops_lr(tiny_model, tmp_path):
+    model_dir, data = tiny_model
+    cfg = APNTrainConfig(steps=7, batch_size=16, lr_drops=(0.5,))
+    meta = train_apn(model_dir / "vae", data, tmp_path / "apn", cfg, progress=False)
+    per_pass = -(-meta["pairs"]["train_samples"] // 16)
+    log = [json.loads(x) for x in (tmp_path / "apn" / "log.jsonl").read_text().splitlines()]
+    steps = [r["step"] for r in log]
+    assert steps == sorted({*range(per_pass, 7, per_pass), 7})  # every pass and the last step
+    assert all(r["lr"] == pytest.approx(1e-2 if r["step"] <= 4 else 1e-3) for r in log)
+    assert meta["best"] in log and load_apn(tmp_path / "apn")[1]["train"]["steps"] == 7
 
 
 def test_train_load_evaluate(tiny_model):
