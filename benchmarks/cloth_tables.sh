@@ -31,7 +31,7 @@ for metric in "${metrics[@]}"; do
     $LSR train vae --data $DATA/train --metric $metric --epochs $EPOCHS --lr-drop-epoch $DROP \
       --action-on $on --seed 0 --out $run/vae
   $LSR build-roadmap --vae $run/vae --data $DATA/train --w-eps $w --min-samples 6 \
-    --out $run/roadmap | tail -n 1 > $run/roadmap.json
+    --eps-rule paper --out $run/roadmap | tail -n 1 > $run/roadmap.json
   $LSR eval vfm --model $run --test $DATA/test --pairs 1000 --seed 0 \
     --reader $RUNS/state_reader --figure $run/class_distances.png --json | tail -n 1 \
     > $run/table1.json

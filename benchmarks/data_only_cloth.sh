@@ -30,8 +30,10 @@ PY
 $LSR data import --from $RUN/export --out $RUN/data --overwrite
 [ -f $RUN/model/vae/config.json ] || $LSR train vae --data $RUN/data/train --metric l1 \
   --epochs 30 --lr-drop-epoch 20 --seed 0 --out $RUN/model/vae
-$LSR build-roadmap --vae $RUN/model/vae --data $RUN/data/train --out $RUN/model/roadmap
-$LSR train apn --vae $RUN/model/vae --data $RUN/data/train --seed 0 --out $RUN/model/apn
+$LSR build-roadmap --vae $RUN/model/vae --data $RUN/data/train --eps-rule paper \
+  --out $RUN/model/roadmap
+$LSR train apn --vae $RUN/model/vae --data $RUN/data/train --epochs 200 --seed 0 \
+  --out $RUN/model/apn
 $LSR eval vfm --model $RUN/model --test $RUN/data/test --pairs 1000 --seed 0 --json \
   | tail -1 > $RUN/eval_vfm.json
 $LSR eval apn --model $RUN/model --test $RUN/data/test --json | tail -1 > $RUN/eval_apn.json

@@ -24,7 +24,7 @@ for metric in "${metrics[@]}"; do
     $LSR train vae --data $DATA/train --metric $metric --epochs $epochs --lr-drop-epoch $drop \
       --action-on $on --seed 0 --out $RUNS/$name/vae
   $LSR build-roadmap --vae $RUNS/$name/vae --data $DATA/train --w-eps 1 --min-samples 3 \
-    --out $RUNS/$name/roadmap
+    --eps-rule paper --out $RUNS/$name/roadmap
   $LSR eval vfm --model $RUNS/$name --test $DATA/test --pairs 1000 --seed 0 \
     --reader $RUNS/state_reader --figure $RUNS/$name/class_distances.png --json \
     | tail -n 1 > $RUNS/$name/table1.json
