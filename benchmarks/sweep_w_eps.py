@@ -37,7 +37,8 @@ def main() -> None:
     print(f"metric {metric}, min_samples {args.min_samples}, {args.pairs} test pairs")
     print("w_eps  epsilon  regions  nodes  edges  purity   all    any    trans")
     for w in args.w:
-        roadmap = build_roadmap(mu1, mu2, train.a, RoadmapConfig(metric, w, args.min_samples))
+        config = RoadmapConfig(metric, w, args.min_samples, eps_rule="paper")
+        roadmap = build_roadmap(mu1, mu2, train.a, config)
         labels = label_nodes(roadmap.point_node, point_states, roadmap.num_nodes)
         r = evaluate_plans(train.task, roadmap, labels, z_test, test_states, pairs, 1000)
         print(
