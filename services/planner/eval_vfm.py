@@ -13,13 +13,14 @@ from services.encoder.model import VAE
 from services.planner.build import default_metric, interleave, load_model
 from services.planner.evaluate import (
     class_distances,
+    demonstrated_reach,
     evaluate_interpolation,
     evaluate_plans,
     sample_test_pairs,
 )
 from services.planner.roadmap import Roadmap
 from services.sim.state_reader import StateReader, load_reader, read_states
-from shared.dataset import load_dataset
+from shared.dataset import Dataset, load_dataset
 
 
 def load_test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]:
@@ -77,7 +78,11 @@ def run_vfm_eval(
     analysis = None
     train_dir = train_dir or vae_config["dataset"]["path"]
     if train_dir and Path(train_dir).is_dir():
-        analysis = _class_analysis(vae, train_dir, default_metric(vae_config))
+        train = load_dataset(train_dir)
+        row["demonstrated_reach"] = demonstrated_reach(
+            train.state1, train.state2, train.a, states, test_pairs
+        )
+        analysis = _class_analysis(vae, train, default_metric(vae_config))
         row["mean_min_inter_minus_max_intra"] = analysis["mean_min_inter_minus_max_intra"]
         row["classes_separated"] = analysis["classes_separated"]
         row["classes"] = analysis["classes"]
@@ -110,9 +115,8 @@ def _interpolation(
     return evaluate_interpolation(task_name, reads, states, test_pairs)
 
 
-def _class_analysis(vae: VAE, train_dir: Path | str, metric: str) -> dict[str, Any]:
+def _class_analysis(vae: VAE, data: Dataset, metric: str) -> dict[str, Any]:
     """Classes = distinct true states of the training images."""
-    data = load_dataset(train_dir)
     z = interleave(encode_images(vae, data.image1)[0], encode_images(vae, data.image2)[0])
     point_states = interleave(data.state1, data.state2).reshape(len(z), -1)
     _, classes = np.unique(point_states, axis=0, return_inverse=True)

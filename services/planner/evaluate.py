@@ -13,6 +13,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from services.planner.roadmap import Roadmap, pair_distances
 from shared.tasks import get_task
@@ -100,6 +102,30 @@ def sample_test_pairs(num_images: int, pairs: int, seed: int) -> np.ndarray:
     start = rng.integers(num_images, size=pairs)
     goal = (start + rng.integers(1, num_images, size=pairs)) % num_images
     return np.stack([start, goal], axis=1)
+
+
+def demonstrated_reach(
+    train_states1: np.ndarray,
+    train_states2: np.ndarray,
+    a: np.ndarray,
+    test_states: np.ndarray,
+    pairs: np.ndarray,
+) -> float:
+    """% of the test pairs whose start and goal states the training data's action pairs chain
+    together: the ceiling of % All for any roadmap made of demonstrated transitions (a state
+    never demonstrated has no node; two states in different components have no path)."""
+    n = len(train_states1)
+    rows = np.concatenate([train_states1, train_states2]).reshape(2 * n, -1).astype(np.int64)
+    seen, ids = np.unique(rows, axis=0, return_inverse=True)
+    ids = ids.ravel()
+    act = np.flatnonzero(a == 1)
+    graph = coo_matrix((np.ones(len(act)), (ids[act], ids[n + act])), shape=(len(seen),) * 2)
+    component = connected_components(graph, directed=False)[1]
+    index = {row.tobytes(): c for row, c in zip(seen, component, strict=True)}
+    test_rows = test_states.reshape(len(test_states), -1).astype(np.int64)
+    test = [index.get(row.tobytes(), -1) for row in test_rows]
+    joined = [test[i] != -1 and test[i] == test[j] for i, j in pairs]
+    return 100.0 * float(np.mean(joined)) if len(pairs) else 0.0
 
 
 def evaluate_plans(

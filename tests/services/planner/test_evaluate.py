@@ -1,8 +1,10 @@
 import numpy as np
+import pytest
 
 from services.planner.evaluate import (
     TransitionChecker,
     class_distances,
+    demonstrated_reach,
     evaluate_interpolation,
     label_nodes,
     path_verdict,
@@ -59,3 +61,15 @@ def test_class_distances_separated_and_not():
     assert apart["classes_separated"] == 3 and apart["mean_min_inter_minus_max_intra"] > 9
     mixed = class_distances(rng.normal(0, 1, (60, 2)), classes, "l2")
     assert mixed["classes_separated"] < 3 and mixed["mean_min_inter_minus_max_intra"] < 0
+
+
+def test_demonstrated_reach_is_the_share_of_pairs_the_training_transitions_chain():
+    # states 0-1-2 chained by actions, 3-4 by one action, 5 seen only in a no-action pair
+    s1 = np.array([[0], [1], [3], [5]], np.int8)
+    s2 = np.array([[1], [2], [4], [5]], np.int8)
+    a = np.array([1, 1, 1, 0])
+    test = np.array([[0], [2], [3], [4], [5], [6]], np.int64)  # 6: never demonstrated
+    pairs = np.array([[0, 1], [2, 3], [0, 2], [4, 4], [5, 0], [3, 2]])
+    # 0-2 joined, 3-4 joined, 0-3 not, 5-5 seen (one state), 6 never seen, 4-3 joined
+    assert demonstrated_reach(s1, s2, a, test, pairs) == pytest.approx(100.0 * 4 / 6)
+    assert demonstrated_reach(s1, s2, np.zeros(4, int), test, pairs[[3]]) == 100.0
