@@ -234,12 +234,13 @@ def main() -> None:
     )
     print(header)
     for r in rows:
-        loop, apn = (
-            "-" if v is None else f"{v:5.1f}" for v in (r["closed_loop_success"], r["apn_right"])
+        loop, apn, reach = (
+            "-" if v is None else f"{v:5.1f}"
+            for v in (r["closed_loop_success"], r["apn_right"], r["demonstrated_reach"])
         )
         print(
             f"{r['tuples']:6d} {r['nodes']:5d} {r['edges']:5d} {r['all']:5.1f} {r['any']:5.1f} "
-            f"{r['trans']:5.1f} {r['demonstrated_reach'] or 0:7.1f} {r['detour_ratio'] or 0:6.3f} "
+            f"{r['trans']:5.1f} {reach:>7} {r['detour_ratio'] or 0:6.3f} "
             f"{apn} {loop} | {r['paper_rule_all_any_trans'][0]:5.1f}"
             f"  {r['pipeline_cpu_minutes']:6.1f}"
         )

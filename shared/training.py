@@ -1,5 +1,5 @@
-"""What every trainer here shares: runs are counted in optimiser steps, not passes over the data,
-so a small dataset trains as long as a large one (issue 14)."""
+"""What the VAE and APN trainers share: their runs count optimiser steps, not passes over the
+data, so a small dataset trains as long as a large one (issue 14)."""
 
 from __future__ import annotations
 

@@ -13,6 +13,7 @@ from services.apn.train import (
     propose,
     train_apn,
 )
+from services.cli import main
 from shared.checkpoint import verify
 
 
@@ -53,14 +54,21 @@ def test_runs_are_counted_in_steps_whatever_the_data_size():
 
 def test_training_in_steps_validates_every_pass_and_drops_lr(tiny_model, tmp_path):
     model_dir, data = tiny_model
-    cfg = APNTrainConfig(steps=7, batch_size=16, lr_drops=(0.5,))
-    meta = train_apn(model_dir / "vae", data, tmp_path / "apn", cfg, progress=False)
+
+    def run(name: str, cfg: APNTrainConfig) -> tuple[dict, list[dict]]:
+        meta = train_apn(model_dir / "vae", data, tmp_path / name, cfg, progress=False)
+        lines = (tmp_path / name / "log.jsonl").read_text().splitlines()
+        return meta, [json.loads(x) for x in lines]
+
+    # one batch a pass: validated after every step, so the log shows the lr of every step
+    meta, log = run("whole", APNTrainConfig(steps=6, batch_size=1024, lr_drops=(0.5,)))
+    assert [r["lr"] for r in log] == pytest.approx([1e-2] * 3 + [1e-3] * 3)
+    assert meta["best"] in log and meta["train"]["total_steps"] == 6
+    # batches of 16: validated after every pass and after the last step
+    meta, log = run("batches", APNTrainConfig(steps=7, batch_size=16))
     per_pass = -(-meta["pairs"]["train_samples"] // 16)
-    log = [json.loads(x) for x in (tmp_path / "apn" / "log.jsonl").read_text().splitlines()]
-    steps = [r["step"] for r in log]
-    assert steps == sorted({*range(per_pass, 7, per_pass), 7})  # every pass and the last step
-    assert all(r["lr"] == pytest.approx(1e-2 if r["step"] <= 4 else 1e-3) for r in log)
-    assert meta["best"] in log and load_apn(tmp_path / "apn")[1]["train"]["steps"] == 7
+    assert [r["step"] for r in log] == sorted({*range(per_pass, 7, per_pass), 7})
+    assert load_apn(tmp_path / "batches")[1]["train"]["steps"] == 7
 
 
 def test_train_load_evaluate(tiny_model):
@@ -108,3 +116,13 @@ def test_cloth_apn_reports_table_two(tiny_cloth_model):
     assert result["pick_pixels"]["mean"] >= 0 and 0 <= result["same_move"] <= 100
     noise = result["mse_click_noise"]  # every demonstrated click matches a move
     assert 0 < noise["pick"] <= noise["total"]
+
+
+def test_cli_steps_or_epochs(tiny_model, tmp_path):
+    model_dir, data = tiny_model
+    base = ["train", "apn", "--vae", str(model_dir / "vae"), "--data", str(data)]
+    assert main([*base, "--steps", "2", "--out", str(tmp_path / "a")]) == 0
+    train = load_apn(tmp_path / "a")[1]["train"]
+    assert (train["steps"], train["epochs"], train["total_steps"]) == (2, None, 2)
+    with pytest.raises(SystemExit):  # one length, not two
+        main([*base, "--steps", "2", "--epochs", "1", "--out", str(tmp_path / "b")])
