@@ -48,7 +48,21 @@ def cmd_eval_vfm(args: argparse.Namespace) -> int:
 def cmd_eval_apn(args: argparse.Namespace) -> int:
     from services.apn.train import evaluate_apn
 
-    result = evaluate_apn(args.apn or args.model / "apn", args.model / "vae", args.test)
+    apn_dir = args.apn or args.model / "apn"
+    result = evaluate_apn(apn_dir, args.model / "vae", args.test)
+    if (args.model / "roadmap" / "labels.json").is_file():  # a task with states and rules
+        from services.apn.train import load_apn
+        from services.encoder.checkpoint import read_vae_config
+        from services.planner.action_plans import edge_actions
+        from services.planner.build import load_labels
+        from services.planner.roadmap import Roadmap
+        from shared.tasks import get_task
+
+        task = get_task(read_vae_config(args.model / "vae")["dataset"]["task"])
+        labels = load_labels(args.model / "roadmap", task.name)
+        states = [task.array_to_state(s) for s in labels.states]
+        roadmap = Roadmap.load(args.model / "roadmap")
+        result["roadmap_edges"] = edge_actions(task, roadmap, load_apn(apn_dir)[0], states)
     if not args.json:
         for key, value in result.items():
             print(f"{key:>20}: {value}")
@@ -106,7 +120,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     vfm.add_argument("--json", action="store_true", help="print only the JSON line")
     vfm.set_defaults(handler=cmd_eval_vfm)
 
-    eapn = evals.add_parser("apn", help="APN accuracy on unseen action pairs")
+    eapn = evals.add_parser(
+        "apn", help="APN accuracy on unseen action pairs and on the roadmap's edges"
+    )
     eapn.add_argument("--model", required=True, type=Path, help="folder with vae/ and apn/")
     eapn.add_argument("--apn", type=Path, help="APN folder (default: MODEL/apn)")
     eapn.add_argument("--test", required=True, type=Path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from services.planner.roadmap import Roadmap
 from services.runtime import declare_model_task
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
-from shared.tasks.base import Task
+from shared.tasks.base import IllegalActionError, Task
 
 
 class ActionPlanner:
@@ -65,3 +66,34 @@ class ActionPlanner:
                 )
             )
         return plans
+
+
+def edge_actions(
+    task: Task, roadmap: Roadmap, apn: APN, node_states: list[Any], show: int = 5
+) -> dict[str, Any]:
+    """The APN's action on every roadmap edge, both ways, applied by the task's rules to the
+    first node's state: does it give the second node's? Plans are chains of these edges and the
+    APN sees only the nodes' latents, so these are the actions a closed loop can execute."""
+    edges = [(int(a), int(b)) for a, b in roadmap.edges]
+    edges += [(b, a) for a, b in edges]
+    if not edges:
+        return {"edges": 0, "right": 0, "wrong": []}
+    ids = np.array(edges)
+    z = roadmap.nodes.astype(np.float32)
+    arrays, _ = propose(apn, z[ids[:, 0]], z[ids[:, 1]])
+    wrong = []
+    for (a, b), array in zip(edges, arrays, strict=True):
+        action = task.array_to_action(array)
+        try:
+            right = action is not None and task.apply(node_states[a], action) == node_states[b]
+        except IllegalActionError:
+            right = False
+        if not right:
+            wrong.append(
+                {
+                    "from": task.state_to_json(node_states[a]),
+                    "to": task.state_to_json(node_states[b]),
+                    "action": None if action is None else task.action_to_json(action),
+                }
+            )
+    return {"edges": len(edges), "right": len(edges) - len(wrong), "wrong": wrong[:show]}

@@ -126,3 +126,13 @@ def test_cli_steps_or_epochs(tiny_model, tmp_path):
     assert (train["steps"], train["epochs"], train["total_steps"]) == (2, None, 2)
     with pytest.raises(SystemExit):  # one length, not two
         main([*base, "--steps", "2", "--epochs", "1", "--out", str(tmp_path / "b")])
+
+
+def test_cli_eval_apn_checks_the_roadmap_edges(tiny_model, capsys):
+    from services.planner.roadmap import Roadmap
+
+    model_dir, data = tiny_model
+    assert main(["eval", "apn", "--model", str(model_dir), "--test", str(data), "--json"]) == 0
+    edges = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["roadmap_edges"]
+    assert edges["edges"] == 2 * len(Roadmap.load(model_dir / "roadmap").edges)
+    assert len(edges["wrong"]) == min(5, edges["edges"] - edges["right"])

@@ -137,3 +137,47 @@ def test_cli_plan_bad_input(tiny_model, tmp_path, capsys, args, message):
     args = [str(small) if a == "SMALL" else a for a in args]
     assert main(["plan", "--model", str(model_dir), "--out", str(tmp_path / "o"), *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_edge_actions_apply_the_apn_to_every_edge_both_ways(monkeypatch):
+    import services.planner.action_plans as action_plans
+    from services.planner.roadmap import Roadmap, RoadmapConfig
+    from shared.tasks import get_task
+
+    task = get_task("box_stacking")
+    s0 = task.sample_state(np.random.default_rng(0))
+    s1 = task.neighbours(s0)[0][1]
+    s2 = next(t for _, t in task.neighbours(s1) if t != s0)
+    states = [s0, s1, s2]
+    moves = {
+        (a, b): next(m for m, t in task.neighbours(states[a]) if t == states[b])
+        for a, b in [(0, 1), (1, 0), (1, 2), (2, 1)]
+    }
+    moves[(2, 1)] = moves[(1, 2)]  # the APN gets one direction wrong
+    roadmap = Roadmap(
+        config=RoadmapConfig(metric="l1"),
+        epsilon=1.0,
+        mu0=0.5,
+        sigma0=0.1,
+        nodes=np.array([[0.0], [1.0], [2.0]], np.float32),
+        node_sizes=np.ones(3, np.int64),
+        edges=np.array([[0, 1], [1, 2]], np.int64),
+        edge_weights=np.ones(2, np.int64),
+        point_node=np.array([0, 1, 1, 2], np.int64),
+    )
+
+    def propose(apn, z1, z2):  # a fake APN that knows the move of each edge
+        keys = zip(z1[:, 0].astype(int), z2[:, 0].astype(int), strict=True)
+        arrays = np.stack([task.action_to_array(moves[k]) for k in keys])
+        return arrays, np.ones(len(arrays))
+
+    monkeypatch.setattr(action_plans, "propose", propose)
+    result = action_plans.edge_actions(task, roadmap, None, states)
+    assert (result["edges"], result["right"]) == (4, 3)
+    assert result["wrong"] == [
+        {
+            "from": task.state_to_json(s2),
+            "to": task.state_to_json(s1),
+            "action": task.action_to_json(moves[(1, 2)]),
+        }
+    ]
