@@ -51,18 +51,9 @@ def cmd_eval_apn(args: argparse.Namespace) -> int:
     apn_dir = args.apn or args.model / "apn"
     result = evaluate_apn(apn_dir, args.model / "vae", args.test)
     if (args.model / "roadmap" / "labels.json").is_file():  # a task with states and rules
-        from services.apn.train import load_apn
-        from services.encoder.checkpoint import read_vae_config
-        from services.planner.action_plans import edge_actions
-        from services.planner.build import load_labels
-        from services.planner.roadmap import Roadmap
-        from shared.tasks import get_task
+        from services.planner.action_plans import model_edge_actions
 
-        task = get_task(read_vae_config(args.model / "vae")["dataset"]["task"])
-        labels = load_labels(args.model / "roadmap", task.name)
-        states = [task.array_to_state(s) for s in labels.states]
-        roadmap = Roadmap.load(args.model / "roadmap")
-        result["roadmap_edges"] = edge_actions(task, roadmap, load_apn(apn_dir)[0], states)
+        result["roadmap_edges"] = model_edge_actions(args.model, apn_dir)
     if not args.json:
         for key, value in result.items():
             print(f"{key:>20}: {value}")

@@ -10,6 +10,7 @@ import numpy as np
 from services.apn.model import APN
 from services.apn.train import load_apn, propose
 from services.encoder.checkpoint import load_vae
+from services.planner.build import load_model
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
 from services.runtime import declare_model_task
@@ -97,3 +98,11 @@ def edge_actions(
                 }
             )
     return {"edges": len(edges), "right": len(edges) - len(wrong), "wrong": wrong[:show]}
+
+
+def model_edge_actions(model_dir: Path | str, apn_dir: Path | str) -> dict[str, Any]:
+    """edge_actions for a model folder (vae/ and roadmap/ with node labels) and an APN."""
+    _, config, roadmap, labels = load_model(model_dir)
+    task = get_task(config["dataset"]["task"])
+    states = [task.array_to_state(s) for s in labels.states]
+    return edge_actions(task, roadmap, load_apn(apn_dir)[0], states)
