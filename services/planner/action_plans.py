@@ -11,12 +11,13 @@ from services.apn.model import APN
 from services.apn.train import load_apn, propose
 from services.encoder.checkpoint import load_vae
 from services.planner.build import load_model
+from services.planner.evaluate import action_leads
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
 from services.runtime import declare_model_task
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
-from shared.tasks.base import IllegalActionError, Task
+from shared.tasks.base import Task
 
 
 class ActionPlanner:
@@ -85,11 +86,7 @@ def edge_actions(
     wrong = []
     for (a, b), array in zip(edges, arrays, strict=True):
         action = task.array_to_action(array)
-        try:
-            right = action is not None and task.apply(node_states[a], action) == node_states[b]
-        except IllegalActionError:
-            right = False
-        if not right:
+        if not action_leads(task, node_states[a], action, node_states[b]):
             wrong.append(
                 {
                     "from": task.state_to_json(node_states[a]),

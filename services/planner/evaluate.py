@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 
 from services.planner.roadmap import Roadmap, pair_distances
 from shared.tasks import get_task
-from shared.tasks.base import Task, optimal_moves
+from shared.tasks.base import IllegalActionError, Task, optimal_moves
 
 
 @dataclass
@@ -84,6 +84,14 @@ class TransitionChecker:
         if s not in self._next:
             self._next[s] = {n for _, n in self.task.neighbours(s)}
         return t in self._next[s]
+
+
+def action_leads(task: Task, state: Any, action: Any, target: Any) -> bool:
+    """The action, applied by the task's rules to `state`, gives `target` (None never does)."""
+    try:
+        return action is not None and task.apply(state, action) == target
+    except IllegalActionError:
+        return False
 
 
 def path_verdict(

@@ -13,7 +13,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from services.planner.evaluate import TransitionChecker, path_verdict
+from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
 from shared.plans import VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
 
@@ -118,16 +118,10 @@ class PlanJudge:
 
     def action_plan_ok(self, plan: VisualActionPlan) -> bool:
         """Every action, applied by the rules to its node's state, gives the next node's."""
-        for (a, b), action in zip(itertools.pairwise(plan.nodes), plan.actions, strict=True):
-            try:
-                if (
-                    action is None
-                    or self.task.apply(self.node_states[a], action) != (self.node_states[b])
-                ):
-                    return False
-            except IllegalActionError:
-                return False
-        return True
+        return all(
+            action_leads(self.task, self.node_states[a], action, self.node_states[b])
+            for (a, b), action in zip(itertools.pairwise(plan.nodes), plan.actions, strict=True)
+        )
 
 
 def evaluate_system(
