@@ -183,7 +183,7 @@ def plot(task: str, rows: list[dict[str, Any]], path: Path) -> None:
     ax.set_xticks(x, [str(v) for v in x])
     ax.minorticks_off()
     ax.set_xlabel("training tuples")
-    ax.set_ylabel("% of 1000 unseen start/goal pairs")
+    ax.set_ylabel("% of unseen start/goal pairs or tasks")
     ax.set_ylim(0, 102)
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title(f"{task}: plans on unseen data")
