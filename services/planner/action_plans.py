@@ -9,8 +9,8 @@ import numpy as np
 
 from services.apn.model import APN
 from services.apn.train import load_apn, propose
-from services.encoder.checkpoint import load_vae
-from services.planner.build import load_model
+from services.encoder.checkpoint import load_vae, read_vae_config
+from services.planner.build import load_labels
 from services.planner.evaluate import action_leads
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
@@ -99,7 +99,9 @@ def edge_actions(
 
 def model_edge_actions(model_dir: Path | str, apn_dir: Path | str) -> dict[str, Any]:
     """edge_actions for a model folder (vae/ and roadmap/ with node labels) and an APN."""
-    _, config, roadmap, labels = load_model(model_dir)
-    task = get_task(config["dataset"]["task"])
+    model_dir = Path(model_dir)  # the VAE is not needed: the APN reads the nodes' latents
+    task = get_task(read_vae_config(model_dir / "vae")["dataset"]["task"])
+    roadmap = Roadmap.load(model_dir / "roadmap")
+    labels = load_labels(model_dir / "roadmap", task.name)
     states = [task.array_to_state(s) for s in labels.states]
     return edge_actions(task, roadmap, load_apn(apn_dir)[0], states)
