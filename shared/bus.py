@@ -28,6 +28,7 @@ from typing import Generic, TypeVar
 import zenoh
 from pydantic import BaseModel
 
+from shared.deadlines import DeadlineExceeded, working_until
 from shared.messages import (
     CallBudget,
     ErrorReply,
@@ -221,8 +222,10 @@ class PendingCall:
     sent_at: float = field(init=False, default=0.0)
     round_trip_ms: float | None = field(init=False, default=None)  # of the answered query
     served: ReplyMeta | None = field(init=False, default=None)  # the answer's attachment
+    budget_s: float = field(init=False, default=0.0)  # the whole call's, retries included
 
     def __post_init__(self) -> None:
+        self.budget_s = self.deadline - time.monotonic()
         self._send()
 
     def _send(self) -> None:
@@ -266,7 +269,12 @@ class PendingCall:
                 raise RemoteError(self.service, error)
             now = time.monotonic()
             if timed_out or now >= self.deadline:  # served, but silent until the deadline
-                raise ServiceUnavailable(self.service, f"no reply in time on {self.key}")
+                operation = self.key.rsplit("/", 1)[-1]
+                raise ServiceUnavailable(
+                    self.service,
+                    f"no reply in time on {self.key}: {operation} ran out of its "
+                    f"{self.budget_s:.1f} s",
+                )
             # Ended unanswered before the deadline: nobody served the query, or the instance
             # that had it is gone (killed, or stalled and then dead) before its token. The work
             # was lost with it, so sending it to another instance repeats nothing.
@@ -388,7 +396,9 @@ class Server:
     internal. A plain handler is a batch of one whose `parse` does all the work.
     Work happens off zenoh's callback threads, so a slow handler never stalls the network. A query
     still queued when its caller's budget (`CallBudget`) has run out is dropped unanswered: under
-    overload the queue drains instead of computing replies nobody waits for.
+    overload the queue drains instead of computing replies nobody waits for. Work that checks
+    `shared.deadlines.check_deadline` (physics loops) is abandoned the same way once it runs past
+    that budget, so a slow request never makes the ones behind it late.
     """
 
     def __init__(self, session: zenoh.Session, service: str, instance: str) -> None:
@@ -417,15 +427,24 @@ class Server:
 
     def _loop(self, pending: Pending, work: Batched) -> None:
         while (batch := self._next_batch(pending, work.max_batch)) is not None:
+            queries = [query for _, query in batch]
             try:
-                self._answer(batch, work)
+                # The batch works until the latest of its callers stops waiting: long work
+                # (physics, say) checks it between steps and gives up (DeadlineExceeded).
+                with working_until(max(arrived + budget_s(q) for arrived, q in batch)):
+                    self._answer(queries, work)
+            except DeadlineExceeded:
+                self._expire(queries, "abandoned in the work")
             except Exception:  # a reply that could not be sent must not end the worker
                 log.exception("%s could not answer a query", self.service)
             finally:
-                finish(batch)
+                finish(queries)
 
-    def _next_batch(self, pending: Pending, max_batch: int) -> list[zenoh.Query] | None:
-        """The oldest query and those queued behind it, expired ones dropped; None: stop."""
+    def _next_batch(
+        self, pending: Pending, max_batch: int
+    ) -> list[tuple[float, zenoh.Query]] | None:
+        """The oldest query and those queued behind it (with their arrival times), expired
+        ones dropped; None: stop."""
         items = [pending.get()]
         while items[-1] is not None and len(items) < max_batch:
             try:
@@ -440,15 +459,19 @@ class Server:
         live = []
         for arrived, query in items:  # type: ignore[misc]
             if time.monotonic() - arrived <= budget_s(query):
-                live.append(query)
+                live.append((arrived, query))
                 continue
             finish([query])  # unanswered: the caller has stopped waiting
-            with self._expired_lock:
-                self.expired += 1
-                expired = self.expired
-            if expired == 1 or expired % 100 == 0:
-                log.warning("%s: %d queries expired in the queue", self.service, expired)
+            self._expire([query], "expired in the queue")
         return live
+
+    def _expire(self, queries: list[zenoh.Query], where: str) -> None:
+        with self._expired_lock:
+            self.expired += len(queries)
+            expired = self.expired
+        if expired == len(queries) or expired % 100 < len(queries):
+            log.warning("%s: %d queries %s or before (their callers stopped waiting)",
+                        self.service, expired, where)  # fmt: skip
 
     def _answer(self, queries: list[zenoh.Query], work: Batched) -> None:
         # Errors become ErrorReply at once: a kept exception's traceback would hold the queries
@@ -459,6 +482,8 @@ class Server:
             try:
                 requests.append(work.parse(query.payload.to_bytes() if query.payload else b""))
                 accepted.append(query)
+            except DeadlineExceeded:
+                raise
             except Exception as exc:
                 self._send(query, self._error(query, exc), started)
         if not accepted:
@@ -467,6 +492,8 @@ class Server:
             replies = list(work.run(requests))
             if len(replies) != len(accepted):
                 raise RuntimeError(f"{len(replies)} replies for {len(accepted)} queries")
+        except DeadlineExceeded:
+            raise
         except Exception as exc:
             replies = [self._error(accepted[0], exc)] * len(accepted)
         for query, reply in zip(accepted, replies, strict=True):

@@ -1,4 +1,4 @@
-"""`lsr render` and `lsr demo`: pictures of the simulated worlds."""
+"""`lsr render`, `lsr demo` and `lsr settle`: the simulated worlds, their pictures and states."""
 
 from __future__ import annotations
 
@@ -76,9 +76,47 @@ def register(sub: argparse._SubParsersAction) -> None:
     render.add_argument("--out", required=True, type=Path)
     render.set_defaults(handler=cmd_render)
 
+    settle = sub.add_parser(
+        "settle",
+        help="fold every state of a deformable world once and save its settled-state library",
+    )
+    settle.add_argument("--task", default="cloth_folding", choices=task_names())
+    settle.add_argument("--lattice", type=int, help="cloth vertices along a side (tests)")
+    settle.add_argument("--out", type=Path, help="library folder (default: in the cache)")
+    settle.add_argument("--rebuild", action="store_true", help="fold every state again")
+    settle.add_argument("--json", action="store_true", help="no progress bar")
+    settle.set_defaults(handler=cmd_settle)
+
     demo = sub.add_parser("demo", help="render a contact sheet of a few states")
     demo.add_argument("--task", default="box_stacking", choices=task_names())
     demo.add_argument("--out", type=Path, default=Path("docs/images/box_stacking_states.png"))
     demo.add_argument("--size", type=int, default=128)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(handler=cmd_demo)
+
+
+def cmd_settle(args: argparse.Namespace) -> int:
+    """Build a world's settled-state library: every state folded once, saved sealed."""
+    import json
+
+    from services.sim.settled import cached_folder
+    from services.sim.worlds import make_world
+
+    options = {} if args.lattice is None else {"lattice": args.lattice}
+    with make_world(args.task, 64, **options) as world:
+        library = getattr(world, "library", None)
+        if library is None:
+            raise ValueError(f"task {args.task!r}: its world resets without a library")
+        if args.rebuild:
+            library.physics.clear()
+        library.fill(world, progress=not args.json)
+        out = library.save(args.out or cached_folder(library.scene_hash))
+    summary = {
+        "task": args.task,
+        "scene_hash": library.scene_hash,
+        "orders": len(library.physics),
+        "build_seconds": round(library.build_seconds, 1),
+        "out": str(out),
+    }
+    print(json.dumps(summary))
+    return 0

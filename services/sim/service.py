@@ -14,6 +14,7 @@ import zenoh
 
 from services.runtime import ServiceContext
 from services.sim.closed_loop import run_episode
+from services.sim.settled import ensure_complete
 from services.sim.worlds import make_world
 from shared.bus import MSGPACK, Handler, progress_key
 from shared.client import PlanningClient
@@ -36,12 +37,27 @@ from shared.validation import FieldError, check_images, check_task, parse_state
 log = logging.getLogger(__name__)
 
 
+def prepare_library(task_name: str, size: int) -> None:
+    """Have the world's settled-state library complete before serving: built here, with a
+    progress bar, and saved in the cache when neither the shipped models nor the cache have
+    this scene's; every operation's world then loads it and resets in milliseconds."""
+    world = make_world(task_name, size)
+    try:
+        library = getattr(world, "library", None)
+        if library is not None:
+            ensure_complete(world, library)
+            log.info("settled states of %s: %s", task_name, library.source)
+    finally:
+        world.close()
+
+
 def setup(context: ServiceContext) -> dict[str, Handler]:
     name, size = context.model.task, context.model.image_size
     task = get_task(name)
     # One world per operation, made by that operation's worker thread on first use: an EGL
     # context can only be current in one thread, and the worker is the thread that renders.
     worlds: dict[str, World] = {}
+    prepare_library(name, size)
 
     def world(operation: str) -> World:
         if operation not in worlds:

@@ -8,7 +8,12 @@ vertices, after a rigid alignment, with each state's ideal folded cloth.
 
 from __future__ import annotations
 
-from dataclasses import replace
+import hashlib
+import itertools
+import json
+from collections.abc import Sequence
+from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +26,8 @@ from services.sim.cloth_folding.scene import (
     flat_mesh,
 )
 from services.sim.rendering import OffscreenCamera, mujoco
+from services.sim.settled import SettledLibrary
+from shared.deadlines import check_deadline
 from shared.tasks.base import InvalidActionError, World, WorldError
 from shared.tasks.cloth_folding import (
     CORNER_DIRECTIONS,
@@ -37,6 +44,7 @@ HOLD_SECONDS = 0.15
 SETTLE_MAX_SECONDS = 1.2
 SETTLE_MIN_SECONDS = 0.3
 SETTLE_SPEED = 0.02  # m/s: the cloth counts as at rest below this
+RESETTLE_MIN_SECONDS = 0.0  # a settled cloth moved rigidly is at rest: two steps show it (< 0.3 mm)
 FAR = 0.03  # m: a vertex this far from a state's reference cloth does not match it
 MAX_FAR_SHARE = 0.05  # a state matches when fewer vertices than this share are far
 CLICK_NOISE = 1.5  # pixels (standard deviation, clipped at 2x) of a demonstrator's clicks
@@ -47,7 +55,7 @@ PERTURB_TURN = np.deg2rad(2.0)
 
 
 class ClothFoldingWorld(World[Folds, ClothAction]):
-    episode_length = 10  # a reset folds up to four corners: walk from it instead
+    episode_length = 10  # tuples walked from a reset: folded states come from physics
 
     def __init__(
         self,
@@ -55,8 +63,11 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         image_size: int = 64,
         geometry: ClothGeometry | None = None,
         lattice: int | None = None,
+        library: Sequence[Path] | None = None,
     ) -> None:
-        """`lattice` (vertices along a side) overrides the geometry's: 5 makes a fast test cloth."""
+        """`lattice` (vertices along a side) overrides the geometry's: 5 makes a fast test cloth.
+        `library`: the folders searched for this scene's settled states (default: the shipped
+        models', then the cache); without one, each state is folded once, on first use."""
         self.task = task or ClothFolding()
         self.image_size = image_size
         self.geometry = geometry or ClothGeometry()
@@ -84,6 +95,8 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         cam = self.model.camera("top")
         self._camera_height = float(self.model.cam_pos[cam.id][2])
         self._focal = self.task.config.frame / 2 / np.tan(np.deg2rad(self.geometry.fovy) / 2)
+        self.library = SettledLibrary.find(self.task, self.scene_hash(), library)
+        self._steps = 0  # physics steps taken, for the deadline checks
 
     # ----- frames: metres on the table <-> pixels of the task's action frame -----
     def to_pixels(self, points: np.ndarray) -> np.ndarray:
@@ -117,10 +130,17 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
     def vertices(self) -> np.ndarray:
         return self.data.flexvert_xpos.copy()
 
-    def _set_vertices(self, positions: np.ndarray) -> None:
+    def _velocities(self) -> np.ndarray:
+        dof = self.model.body_dofadr[self._vertex_body]
+        return np.stack([self.data.qvel[d : d + 3] for d in dof])
+
+    def _set_vertices(self, positions: np.ndarray, velocities: np.ndarray | None = None) -> None:
         mujoco.mj_resetData(self.model, self.data)
         for i, adr in enumerate(self._qpos):
             self.data.qpos[adr : adr + 3] = positions[i] - self._body_origin[i]
+        if velocities is not None:
+            for i, d in enumerate(self.model.body_dofadr[self._vertex_body]):
+                self.data.qvel[d : d + 3] = velocities[i]
         mujoco.mj_forward(self.model, self.data)
 
     def _reference(self, state: Folds) -> np.ndarray:
@@ -137,11 +157,69 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
             points[flap] -= 2 * beyond[flap, None] * normal
         return points
 
+    # ----- the settled-state library (services.sim.settled) -----
+    def scene_hash(self) -> str:
+        """sha256 of all that shapes a settled cloth: the physics MJCF, the motion recipe, the
+        moves and MuJoCo's version (rendering options and the image size do not count)."""
+        recipe = {
+            "carry_speed": CARRY_SPEED,
+            "arc_height": ARC_HEIGHT,
+            "place_clearance": PLACE_CLEARANCE,
+            "hold": HOLD_SECONDS,
+            "settle": [SETTLE_MIN_SECONDS, SETTLE_MAX_SECONDS, SETTLE_SPEED],
+        }
+        document = {
+            "mujoco": mujoco.__version__,
+            "mjcf": build_mjcf(self.task.config, self.geometry, 64),
+            "geometry": asdict(self.geometry),
+            "recipe": recipe,
+            "moves": [[m.kind, m.corner, list(m.action)] for m in self.task.moves.values()],
+        }
+        return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
+
+    def reset_orders(self, state: Folds) -> list[tuple[ClothAction, ...]]:
+        """Every order of folding the state's corners: resets draw one, as a person would."""
+        folds = [self.task.moves["fold", corner].action for corner in state]
+        return list(itertools.permutations(folds))
+
+    def place_origin(self) -> None:
+        flat = np.column_stack([self._flat, np.full(len(self._flat), self.geometry.radius)])
+        self._set_vertices(flat)
+
+    def act(self, action: ClothAction) -> None:
+        self._carry(action)
+
+    def physics_state(self) -> np.ndarray:
+        return np.concatenate([self.data.qpos, self.data.qvel])
+
+    def load_physics_state(self, physics: np.ndarray) -> None:
+        nq = self.model.nq
+        if physics.shape != (nq + self.model.nv,):
+            raise WorldError(f"a settled state of shape {physics.shape} does not fit this cloth")
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = physics[:nq]
+        self.data.qvel[:] = physics[nq:]
+        mujoco.mj_forward(self.model, self.data)
+
     # ----- reset, perturb, settle -----
     def reset(self, state: Folds, rng: np.random.Generator) -> Folds:
+        """Load a settled cloth of `state` (one of its fold orders, drawn), put it down at a
+        fresh pose within the reset noise and let it come to rest."""
+        state = self.task.parse_state(self.task.state_to_json(state))
+        orders = self.reset_orders(state)
+        physics = self.library.variant(self, orders[int(rng.integers(len(orders)))])
+        self.load_physics_state(physics)
+        moved = _rigid(self.vertices(), rng, RESET_SHIFT, RESET_TURN, self._velocities())
+        self._set_vertices(*moved)
+        self._settle(RESETTLE_MIN_SECONDS)
+        return self.read_state()
+
+    def reset_by_physics(self, state: Folds, rng: np.random.Generator) -> Folds:
+        """The state reached by physics alone: the flat cloth at a fresh pose, its corners
+        folded in a random order with a demonstrator's clicks (what `reset` stands in for)."""
         state = self.task.parse_state(self.task.state_to_json(state))
         flat = np.column_stack([self._flat, np.full(len(self._flat), self.geometry.radius)])
-        self._set_vertices(_rigid(flat, rng, RESET_SHIFT, RESET_TURN))
+        self._set_vertices(_rigid(flat, rng, RESET_SHIFT, RESET_TURN)[0])
         for corner in rng.permutation(np.array(state, dtype=object)).tolist():
             self._carry(self.demonstrated(self.task.moves["fold", corner].action, rng))
         return self.read_state()
@@ -157,8 +235,8 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         reference = self._references[state]
         rotation, centroid, target = _fit(points[:, :2], reference, self._agreeing(points, state))
         points[:, :2] = (points[:, :2] - centroid) @ rotation + target  # the reference pose
-        self._set_vertices(_rigid(points, rng, PERTURB_SHIFT, PERTURB_TURN))
-        self._settle()
+        self._set_vertices(_rigid(points, rng, PERTURB_SHIFT, PERTURB_TURN)[0])
+        self._settle(RESETTLE_MIN_SECONDS)
         after = self.read_state()
         if after != state:
             raise WorldError(f"the perturbed cloth reads as {after}, not {state}")
@@ -175,12 +253,20 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         v = values.astype(int).tolist()
         return ClothAction(Pixel(v[0], v[1]), Pixel(v[2], v[3]), action.height)
 
-    def _settle(self) -> None:
+    def _settle(self, min_seconds: float = SETTLE_MIN_SECONDS) -> None:
         dt = self.model.opt.timestep
         for step in range(int(SETTLE_MAX_SECONDS / dt)):
-            mujoco.mj_step(self.model, self.data)
-            if step * dt > SETTLE_MIN_SECONDS and self._speed() < SETTLE_SPEED:
+            self._step()
+            if step * dt > min_seconds and self._speed() < SETTLE_SPEED:
                 break
+
+    def _step(self) -> None:
+        """One physics step; every 25 (0.1 s of cloth time) the request's deadline is checked,
+        so that work nobody waits for any more stops between steps."""
+        mujoco.mj_step(self.model, self.data)
+        self._steps += 1
+        if self._steps % 25 == 0:
+            check_deadline()
 
     def _speed(self) -> float:
         return float(np.abs(self.data.qvel).max(initial=0.0))
@@ -276,9 +362,9 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
             mujoco.mju_axisAngle2Quat(quat, axis, angle)
             self.data.mocap_quat[self._grip] = quat
             self.data.mocap_pos[self._grip] = (*xy, z)
-            mujoco.mj_step(self.model, self.data)
+            self._step()
         for _ in range(int(HOLD_SECONDS / self.model.opt.timestep)):
-            mujoco.mj_step(self.model, self.data)
+            self._step()
         self.data.eq_active[self._pads] = 0
         self._settle()
 
@@ -295,15 +381,26 @@ def _min_jerk(t: float) -> float:
     return t**3 * (10 - 15 * t + 6 * t**2)
 
 
-def _rigid(points: np.ndarray, rng: np.random.Generator, shift: float, turn: float) -> np.ndarray:
-    """`points` turned about their centroid and shifted in the table plane, uniformly at random."""
+def _rigid(
+    points: np.ndarray,
+    rng: np.random.Generator,
+    shift: float,
+    turn: float,
+    velocities: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """`points` turned about their centroid and shifted in the table plane, uniformly at random,
+    and `velocities` turned with them."""
     angle = rng.uniform(-turn, turn)
     c, s = np.cos(angle), np.sin(angle)
+    rotation = np.array([[c, s], [-s, c]])
     centroid = points[:, :2].mean(axis=0)
     out = points.copy()
-    out[:, :2] = (points[:, :2] - centroid) @ np.array([[c, s], [-s, c]]) + centroid
+    out[:, :2] = (points[:, :2] - centroid) @ rotation + centroid
     out[:, :2] += rng.uniform(-shift, shift, size=2)
-    return out
+    if velocities is not None:
+        velocities = velocities.copy()
+        velocities[:, :2] = velocities[:, :2] @ rotation
+    return out, velocities
 
 
 def _far(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
