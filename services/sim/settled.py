@@ -134,8 +134,10 @@ class SettledLibrary:
     def fill(self, world: Settling, progress: bool = True) -> SettledLibrary:
         """Fold every order the library lacks (a progress bar shows them)."""
         missing = [o for o in self.orders(world) if o not in self.physics]
-        bar = tqdm(missing, desc=f"settling {self.task.name} states", unit="state")
-        for order in bar if progress else missing:
+        bar = tqdm(
+            missing, desc=f"settling {self.task.name} states", unit="state", disable=not progress
+        )
+        for order in bar:
             self.variant(world, order)
         return self
 

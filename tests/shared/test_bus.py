@@ -26,6 +26,7 @@ from shared.bus import (
     open_session,
     service_key,
 )
+from shared.deadlines import DeadlineExceeded, check_deadline, working_until
 from shared.messages import DecodeReply, DecodeRequest, ErrorReply, WireArray, unpack
 from shared.validation import FieldError, check_latents
 
@@ -135,6 +136,44 @@ def test_queries_whose_caller_gave_up_are_dropped_not_computed(network):
     assert len(computed) == 1 and server.expired == 4
     assert call(caller, "slow", "t", "decode", z, DecodeReply, 2.0).result()  # serves again
     server.close()
+
+
+def test_work_past_its_callers_deadline_is_abandoned_between_steps(network):
+    """A handler that checks the deadline (physics between steps) stops once its caller has
+    stopped waiting: the query behind it is served in time, and the 503 names the operation."""
+    a, _, caller = network
+    server = Server(a, "stepper", "x")
+    steps: list[int] = []
+
+    def long_work(payload: bytes) -> DecodeReply:
+        for step in range(100):  # 5 s of work, unless abandoned
+            time.sleep(0.05)
+            steps.append(step)
+            check_deadline()
+        return DecodeReply(images=WireArray.of(np.zeros((1, 2, 2, 3), np.uint8)))
+
+    server.serve(service_key("stepper", "t", "fold"), long_work)
+    time.sleep(0.3)
+    z = request(np.zeros((1, 2)))
+    with pytest.raises(ServiceUnavailable, match=r"no reply in time on .*/fold: fold ran out of"):
+        call(caller, "stepper", "t", "fold", z, DecodeReply, 0.5).result()
+    started = time.monotonic()
+    with pytest.raises(ServiceUnavailable):  # waits behind the first only until it is abandoned
+        call(caller, "stepper", "t", "fold", z, DecodeReply, 0.8).result()
+    time.sleep(0.3)
+    assert len(steps) < 40  # both stopped near their deadlines, not after 100 steps each
+    assert server.expired == 2 and time.monotonic() - started < 1.5
+    server.close()
+
+
+def test_deadlines_are_per_thread_and_none_outside_a_request():
+    check_deadline()  # no request: nothing to check
+    with working_until(time.monotonic() - 1):
+        with pytest.raises(DeadlineExceeded, match="deadline passed"):
+            check_deadline()
+        with working_until(None):
+            check_deadline()
+    check_deadline()
 
 
 def test_queued_queries_are_answered_in_batches_each_with_its_own_reply(network):

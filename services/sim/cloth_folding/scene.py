@@ -120,7 +120,8 @@ def build_mjcf(task: ClothFoldingConfig, geometry: ClothGeometry, image_size: in
     return f"""
 <mujoco model="cloth_folding">
   <compiler angle="radian"/>
-  <option timestep="0.004" integrator="implicitfast" solver="Newton" jacobian="sparse"/>
+  <option timestep="0.004" integrator="implicitfast" solver="Newton" jacobian="sparse"
+          cone="elliptic"/>
   <visual>
     <global offwidth="{image_size}" offheight="{image_size}"/>
     <quality shadowsize="0"/>
@@ -135,8 +136,7 @@ def build_mjcf(task: ClothFoldingConfig, geometry: ClothGeometry, image_size: in
   <worldbody>
     <light name="sun" directional="true" pos="0 0 1" dir="0 0 -1" castshadow="false"
            diffuse="0.35 0.35 0.35"/>
-    <geom name="table" type="box" pos="0 0 -0.02" size="1 1 0.02" material="mat_table"
-          friction="1.5"/>
+    <geom name="table" type="plane" size="1 1 0.02" material="mat_table" friction="1.5"/>
     <camera name="top" pos="0 0 {g.camera_height(task):.5f}" xyaxes="1 0 0 0 1 0"
             fovy="{g.fovy}"/>
     <body name="gripper" mocap="true" pos="0.5 0.5 0.3"/>
