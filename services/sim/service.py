@@ -7,6 +7,8 @@ sim holds no model: only the image size it must render at.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,8 +16,8 @@ import zenoh
 
 from services.runtime import ServiceContext
 from services.sim.closed_loop import run_episode
-from services.sim.settled import ensure_complete
-from services.sim.worlds import make_world
+from services.sim.settled import FOLDER, default_folders, ensure_complete
+from services.sim.worlds import make_world, world_class
 from shared.bus import MSGPACK, Handler, progress_key
 from shared.client import PlanningClient
 from shared.messages import (
@@ -37,18 +39,20 @@ from shared.validation import FieldError, check_images, check_task, parse_state
 log = logging.getLogger(__name__)
 
 
-def prepare_library(task_name: str, size: int) -> None:
-    """Have the world's settled-state library complete before serving: built here, with a
-    progress bar, and saved in the cache when neither the shipped models nor the cache have
-    this scene's; every operation's world then loads it and resets in milliseconds."""
-    world = make_world(task_name, size)
-    try:
-        library = getattr(world, "library", None)
-        if library is not None:
-            ensure_complete(world, library)
-            log.info("settled states of %s: %s", task_name, library.source)
-    finally:
-        world.close()
+def world_maker(task_name: str, size: int, model_dir: Path) -> Callable[[], World]:
+    """Worlds of the served task. One that settles searches the served model's library first
+    (MODEL/settled), then the shipped models' and the cache's; it is made complete here, before
+    serving (built with a progress bar and kept in the cache when no folder has this scene's),
+    so that every operation's world loads it and resets in milliseconds."""
+    if not world_class(task_name).settles:
+        return lambda: make_world(task_name, size)
+    folders = [model_dir / FOLDER, *default_folders()]
+    with make_world(task_name, size, library=folders) as world:
+        library = world.library  # type: ignore[attr-defined]
+        ensure_complete(world, library)
+        log.info("settled states of %s from %s", task_name, library.source)
+    folders.insert(0, library.source)
+    return lambda: make_world(task_name, size, library=folders)
 
 
 def setup(context: ServiceContext) -> dict[str, Handler]:
@@ -57,11 +61,11 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
     # One world per operation, made by that operation's worker thread on first use: an EGL
     # context can only be current in one thread, and the worker is the thread that renders.
     worlds: dict[str, World] = {}
-    prepare_library(name, size)
+    new_world = world_maker(name, size, context.model.directory)
 
     def world(operation: str) -> World:
         if operation not in worlds:
-            worlds[operation] = make_world(name, size)
+            worlds[operation] = new_world()
         return worlds[operation]
 
     planner = PlanningClient(context.session, name, context.settings.deadline_s)

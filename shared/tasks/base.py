@@ -165,6 +165,9 @@ class World(ABC, Generic[State, Action]):
     # Tuples a data-generation walk makes from one reset: 1 when resetting is cheap; more when
     # reaching a state costs physics (a folded cloth), so that resets do not dominate.
     episode_length: int = 1
+    # Worlds whose states cost physics to reach (a folded cloth) reset from a settled-state
+    # library (`services.sim.settled`) and take the folders to search as a `library` option.
+    settles: bool = False
 
     @abstractmethod
     def reset(self, state: State, rng: np.random.Generator) -> State:

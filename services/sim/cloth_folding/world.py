@@ -63,6 +63,7 @@ PERTURB_TURN = np.deg2rad(2.0)
 
 class ClothFoldingWorld(World[Folds, ClothAction]):
     episode_length = 10  # tuples walked from a reset: folded states come from physics
+    settles = True
 
     def __init__(
         self,
