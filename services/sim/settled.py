@@ -104,7 +104,7 @@ class SettledLibrary:
                 world.act(order[-1])
             else:
                 world.place_origin()
-            expected = self._state_after(order)
+            expected = self.state_after(order)
             if world.read_state() != expected:
                 raise WorldError(
                     f"settling {self.task.state_to_json(expected)}: the cloth reads as "
@@ -114,7 +114,8 @@ class SettledLibrary:
             self.build_seconds += time.perf_counter() - started
         return self.physics[order]
 
-    def _state_after(self, order: Order) -> Any:
+    def state_after(self, order: Order) -> Any:
+        """The state an order reaches from the origin, the task's first state (the flat cloth)."""
         state = self.task.all_states()[0]
         for action in order:
             state = self.task.apply(state, action)
@@ -126,7 +127,7 @@ class SettledLibrary:
         for state in self.task.all_states():
             for order in world.reset_orders(state):
                 found.update(order[:k] for k in range(len(order) + 1))
-        return sorted(found, key=lambda o: (len(o), [str(a) for a in o]))
+        return sorted(found, key=_order_key)
 
     def complete(self, world: Settling) -> bool:
         return all(order in self.physics for order in self.orders(world))
@@ -145,7 +146,7 @@ class SettledLibrary:
     def save(self, folder: Path | str) -> Path:
         """Write `folder` (index, states, manifest) beside it, then move it in place."""
         folder = Path(folder)
-        orders = sorted(self.physics, key=lambda o: (len(o), [str(a) for a in o]))
+        orders = sorted(self.physics, key=_order_key)
         partial = folder.with_name(f".{folder.name}.{os.getpid()}.partial")
         shutil.rmtree(partial, ignore_errors=True)
         partial.mkdir(parents=True)
@@ -157,7 +158,7 @@ class SettledLibrary:
             "task": self.task.name,
             "scene_hash": self.scene_hash,
             "orders": [[self.task.action_to_json(a) for a in o] for o in orders],
-            "states": [self.task.state_to_json(self._state_after(o)) for o in orders],
+            "states": [self.task.state_to_json(self.state_after(o)) for o in orders],
             "build_seconds": round(self.build_seconds, 1),
         }
         (partial / INDEX).write_text(json.dumps(index, indent=1) + "\n")
@@ -207,6 +208,11 @@ class SettledLibrary:
         return cls(task, scene_hash)
 
 
+def _order_key(order: Order) -> tuple[int, list[str]]:
+    """Shorter orders first (each after its prefixes), then a fixed order among equals."""
+    return len(order), [str(a) for a in order]
+
+
 def cached_folder(scene_hash: str) -> Path:
     return cache_dir() / FOLDER / scene_hash[:16]
 
@@ -227,4 +233,4 @@ def ensure_complete(
 
 def stored_orders(library: SettledLibrary, state: Any) -> Sequence[Order]:
     """The orders stored for `state` (tests and reports)."""
-    return [o for o in library.physics if library._state_after(o) == state]
+    return [o for o in library.physics if library.state_after(o) == state]
