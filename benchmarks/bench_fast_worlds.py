@@ -104,9 +104,9 @@ def part_closed_loop(model: Path, pairs: int, seed: int) -> dict:
 
 
 def part_stack(model: Path, renders: int, pairs: int, seed: int) -> dict:
-    from services.stack import Stack, StackConfig, free_port
+    from services.stack import Stack, StackConfig, free_port, model_task
 
-    task = get_task(json.loads((model / "vae" / "config.json").read_text())["dataset"]["task"])
+    task = get_task(model_task(model))
     states = task.all_states()
     full = max(states, key=len)
     rng = np.random.default_rng(seed)

@@ -100,13 +100,13 @@ def cmd_settle(args: argparse.Namespace) -> int:
     import json
 
     from services.sim.settled import cached_folder
-    from services.sim.worlds import make_world
+    from services.sim.worlds import make_world, world_class
 
+    if not world_class(args.task).settles:
+        raise ValueError(f"task {args.task!r}: its world resets without a library")
     options = {} if args.lattice is None else {"lattice": args.lattice}
     with make_world(args.task, 64, **options) as world:
-        library = getattr(world, "library", None)
-        if library is None:
-            raise ValueError(f"task {args.task!r}: its world resets without a library")
+        library = world.library  # type: ignore[attr-defined]
         if args.rebuild:
             library.physics.clear()
         library.fill(world, progress=not args.json)

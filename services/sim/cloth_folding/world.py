@@ -96,7 +96,11 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
                 self._ring[v].update(triangle)
         self._body_origin = self.model.body_pos[self._vertex_body].copy()
         dof = self.model.body_dofadr[self._vertex_body]
-        self._qpos = self.model.jnt_qposadr[self.model.dof_jntid[dof]]  # 3 slides a vertex
+        xyz = np.arange(3)  # 3 slides a vertex
+        self._qpos = self.model.jnt_qposadr[self.model.dof_jntid[dof]][:, None] + xyz
+        self._dof = dof[:, None] + xyz
+        lying = np.full(len(self._flat), self.geometry.radius)  # the flat cloth lies at z = radius
+        self._flat_points = np.column_stack([self._flat, lying])
         self._grip = int(self.model.body("gripper").mocapid[0])
         self._pads = [self.model.equality(f"pad{i}").id for i in range(PAD_SLOTS)]
         self._references = {s: self._reference(s) for s in self.task.all_states()}
@@ -138,27 +142,21 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
     def vertices(self) -> np.ndarray:
         return self.data.flexvert_xpos.copy()
 
-    def _velocities(self) -> np.ndarray:
-        dof = self.model.body_dofadr[self._vertex_body]
-        return np.stack([self.data.qvel[d : d + 3] for d in dof])
-
     def _set_vertices(
         self,
         positions: np.ndarray,
         velocities: np.ndarray | None = None,
-        keep_warmstart: bool = False,
+        warmstart: np.ndarray | None = None,
     ) -> None:
-        """Place the vertices; `keep_warmstart` keeps the solver's last accelerations, so that a
-        cloth moved rigidly bears on its contacts from the first step as it did before."""
-        warmstart = self.data.qacc_warmstart.copy() if keep_warmstart else None
+        """Place the vertices (at rest unless `velocities` are given); a `warmstart` (the
+        solver's last accelerations) lets a cloth moved rigidly bear on its contacts from the
+        first step as it did before."""
         mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self._qpos] = positions - self._body_origin
+        if velocities is not None:
+            self.data.qvel[self._dof] = velocities
         if warmstart is not None:
             self.data.qacc_warmstart[:] = warmstart
-        for i, adr in enumerate(self._qpos):
-            self.data.qpos[adr : adr + 3] = positions[i] - self._body_origin[i]
-        if velocities is not None:
-            for i, d in enumerate(self.model.body_dofadr[self._vertex_body]):
-                self.data.qvel[d : d + 3] = velocities[i]
         mujoco.mj_forward(self.model, self.data)
 
     def _reference(self, state: Folds) -> np.ndarray:
@@ -202,8 +200,7 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         return list(itertools.permutations(folds))
 
     def place_origin(self) -> None:
-        flat = np.column_stack([self._flat, np.full(len(self._flat), self.geometry.radius)])
-        self._set_vertices(flat)
+        self._set_vertices(self._flat_points)
 
     def act(self, action: ClothAction) -> None:
         self._carry(action)
@@ -229,9 +226,11 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         state = self.task.parse_state(self.task.state_to_json(state))
         orders = self.reset_orders(state)
         physics = self.library.variant(self, orders[int(rng.integers(len(orders)))])
-        self.load_physics_state(physics)
-        moved = _rigid(self.vertices(), rng, RESET_SHIFT, RESET_TURN, self._velocities())
-        self._set_vertices(*moved, keep_warmstart=True)
+        nq, nv = self.model.nq, self.model.nv
+        positions = physics[:nq][self._qpos] + self._body_origin
+        velocities = physics[nq : nq + nv][self._dof]
+        moved = _rigid(positions, rng, RESET_SHIFT, RESET_TURN, velocities)
+        self._set_vertices(*moved, warmstart=physics[nq + nv :])
         self._settle(RESETTLE_MIN_SECONDS)
         return self.read_state()
 
@@ -239,8 +238,7 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         """The state reached by physics alone: the flat cloth at a fresh pose, its corners
         folded in a random order with a demonstrator's clicks (what `reset` stands in for)."""
         state = self.task.parse_state(self.task.state_to_json(state))
-        flat = np.column_stack([self._flat, np.full(len(self._flat), self.geometry.radius)])
-        self._set_vertices(_rigid(flat, rng, RESET_SHIFT, RESET_TURN)[0])
+        self._set_vertices(_rigid(self._flat_points, rng, RESET_SHIFT, RESET_TURN)[0])
         for corner in rng.permutation(np.array(state, dtype=object)).tolist():
             self._carry(self.demonstrated(self.task.moves["fold", corner].action, rng))
         return self.read_state()
@@ -256,7 +254,8 @@ class ClothFoldingWorld(World[Folds, ClothAction]):
         reference = self._references[state]
         rotation, centroid, target = _fit(points[:, :2], reference, self._agreeing(points, state))
         points[:, :2] = (points[:, :2] - centroid) @ rotation + target  # the reference pose
-        self._set_vertices(_rigid(points, rng, PERTURB_SHIFT, PERTURB_TURN)[0], keep_warmstart=True)
+        moved = _rigid(points, rng, PERTURB_SHIFT, PERTURB_TURN)[0]
+        self._set_vertices(moved, warmstart=self.data.qacc_warmstart.copy())
         self._settle(RESETTLE_MIN_SECONDS)
         after = self.read_state()
         if after != state:

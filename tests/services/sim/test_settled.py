@@ -2,6 +2,7 @@
 
 import json
 import logging
+import shutil
 
 import numpy as np
 import pytest
@@ -71,14 +72,12 @@ def test_resets_draw_the_pose_and_the_order_from_the_seed(library_dir):
         assert not np.array_equal(images[0], images[2])
 
 
-def test_another_scene_never_loads_the_library(library_dir, caplog):
+def test_another_scene_never_loads_the_library(library_dir):
     with ClothFoldingWorld(image_size=32, lattice=7, library=[library_dir]) as world:
         assert world.library.source is None and not world.library.physics
 
 
 def test_a_changed_library_file_is_refused_and_named(library_dir, tmp_path, caplog):
-    import shutil
-
     copy = tmp_path / "tampered"
     shutil.copytree(library_dir, copy)
     data = bytearray((copy / STATES).read_bytes())
