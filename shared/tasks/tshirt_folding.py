@@ -1,0 +1,158 @@
+"""T-shirt folding (the paper's deformable study): a short-sleeved T-shirt lying flat.
+
+The neck is at the top of the image, the sleeves to the left and right. A state is the set of
+folds the shirt shows, from the two sleeves (laid over the body along the armhole line), the two
+sides (the outer quarter of the body, carrying its sleeve, so that the two side flaps meet in
+the middle) and the bottom half (laid up over the top, carrying everything): 32 states. A sleeve
+folds or unfolds only while its side and the bottom half are unfolded; a side only while the
+bottom half is unfolded; the bottom half in any state: 80 directed transitions.
+
+Actions are the paper's u = (p, r, h) in the 256 x 256 frame (`shared.tasks.folding`). The
+garment's shape is given in metres (x right, y up, origin at the body's centre) and drawn into
+the frame at `pixels_per_metre`, so that the world and the moves agree on where a fold line is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from shared.tasks.folding import ClothAction, FoldingTask, Folds, Move, Pixel
+
+FOLDS = ("left_sleeve", "right_sleeve", "left_side", "right_side", "bottom_half")
+SIDE_OF = {"left_sleeve": "left_side", "right_sleeve": "right_side"}
+
+
+@dataclass(frozen=True)
+class TshirtConfig:
+    body_width: float = 0.32  # metres
+    body_height: float = 0.36
+    sleeve_length: float = 0.07  # out from the armhole; folded, it lies inside its side strip
+    sleeve_width: float = 0.09  # along the armhole, from the shoulder down
+    side_width: float = 0.08  # the side strip: a quarter of the body, the flaps meet in the middle
+    neck_width: float = 0.08
+    neck_depth: float = 0.045
+    frame: int = 256
+    pixels_per_metre: float = 430.0  # the flat shirt spans 198 x 155 px of the frame
+    tolerance: float = 10.0  # pixels a click may land from a move's canonical point
+    pick_outside: float = 0.005  # m: a fold picks this far outside the flap's edge
+    unfold_inset: float = 0.02  # m: an unfold picks the flap this far inside its folded edge
+    side_pick_y: float = -0.09  # m: sides are picked low on the strip, away from the sleeves
+
+    def __post_init__(self) -> None:
+        if not 0 < self.sleeve_length < self.side_width:
+            raise ValueError("a folded sleeve must lie inside its side strip")
+        if not 0 < 2 * self.side_width <= self.body_width / 2 + 1e-9:
+            raise ValueError("the side strips must not reach past the middle")
+        half_w = self.body_width / 2 + self.sleeve_length
+        if 2 * half_w * self.pixels_per_metre >= self.frame:
+            raise ValueError("the shirt must fit inside the frame")
+
+    @property
+    def armhole(self) -> float:
+        """x of the right armhole line (the left one is its mirror)."""
+        return self.body_width / 2
+
+    @property
+    def side_line(self) -> float:
+        """x of the right side's fold line."""
+        return self.body_width / 2 - self.side_width
+
+
+@dataclass(frozen=True)
+class TshirtFolding(FoldingTask):
+    config: TshirtConfig = field(default_factory=TshirtConfig)
+    name: str = "tshirt_folding"
+
+    @property
+    def folds(self) -> tuple[str, ...]:
+        return FOLDS
+
+    @property
+    def frame(self) -> int:  # type: ignore[override]
+        return self.config.frame
+
+    @property
+    def tolerance(self) -> float:  # type: ignore[override]
+        return self.config.tolerance
+
+    def to_frame(self, x: float, y: float) -> tuple[float, float]:
+        """Metres on the flat shirt -> continuous (col, row) of the action frame."""
+        c = self.config
+        return c.frame / 2 + x * c.pixels_per_metre, c.frame / 2 - y * c.pixels_per_metre
+
+    def _pixel(self, x: float, y: float) -> Pixel:
+        col, row = self.to_frame(x, y)
+        return Pixel(row=int(np.floor(row)), col=int(np.floor(col)))
+
+    def fold_line(self, fold: str) -> tuple[np.ndarray, np.ndarray]:
+        """(a point on the line, the unit normal pointing into the flap), in metres."""
+        c = self.config
+        if fold == "bottom_half":
+            return np.array([0.0, 0.0]), np.array([0.0, -1.0])
+        sign = -1.0 if fold.startswith("left") else 1.0
+        x = c.armhole if fold in SIDE_OF else c.side_line
+        return np.array([sign * x, 0.0]), np.array([sign, 0.0])
+
+    @cached_property
+    def moves(self) -> dict[tuple[str, str], Move]:
+        """A fold picks just outside the flap's edge (every layer) and lays it on its mirror
+        image over the fold line; the unfold picks the flap's top layer just inside its folded
+        edge and lays it back."""
+        c = self.config
+        top = c.body_height / 2
+        sleeve_y = top - c.sleeve_width / 2
+        edges = {  # (the flap's outer edge, distance from the fold line) and where along it
+            "left_sleeve": (c.sleeve_length, sleeve_y),
+            "right_sleeve": (c.sleeve_length, sleeve_y),
+            "left_side": (c.side_width, c.side_pick_y),
+            "right_side": (c.side_width, c.side_pick_y),
+            "bottom_half": (top, 0.0),
+        }
+        out = {}
+        for fold in FOLDS:
+            point, normal = self.fold_line(fold)
+            depth, along = edges[fold]
+            tangent = np.array([normal[1], -normal[0]])
+            base = point + along * np.abs(tangent)
+
+            def at(distance: float, base: np.ndarray = base, normal: np.ndarray = normal) -> Pixel:
+                return self._pixel(*(base + distance * normal))
+
+            out["fold", fold] = Move(
+                "fold",
+                fold,
+                ClothAction(at(depth + c.pick_outside), at(-depth), 0),
+            )
+            inset = depth - c.unfold_inset
+            out["unfold", fold] = Move("unfold", fold, ClothAction(at(-inset), at(inset), 1))
+        return out
+
+    def refusal(self, state: Folds, move: Move) -> str | None:
+        if move.fold != "bottom_half" and "bottom_half" in state:
+            return f"{move.fold!r} cannot {move.kind} while the bottom half is folded over it"
+        side = SIDE_OF.get(move.fold)
+        if side is not None and side in state:
+            return f"{move.fold!r} cannot {move.kind} while {side!r} is folded over it"
+        return None
+
+    def info(self) -> dict[str, Any]:
+        c = self.config
+        return {
+            **super().info(),
+            "garment": {
+                "body_width_m": c.body_width,
+                "body_height_m": c.body_height,
+                "sleeve_length_m": c.sleeve_length,
+                "side_width_m": c.side_width,
+                "pixels_per_metre": c.pixels_per_metre,
+            },
+            "rules": [
+                "a sleeve folds or unfolds only while its side and bottom_half are unfolded",
+                "a side folds or unfolds only while bottom_half is unfolded",
+                "bottom_half folds or unfolds in any state",
+            ],
+        }
