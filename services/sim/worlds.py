@@ -15,6 +15,7 @@ from shared.tasks.base import World
 _WORLDS: dict[str, str] = {
     "box_stacking": "services.sim.box_stacking.world:BoxStackingWorld",
     "cloth_folding": "services.sim.cloth_folding.world:ClothFoldingWorld",
+    "tshirt_folding": "services.sim.tshirt_folding.world:TshirtFoldingWorld",
 }
 
 

@@ -15,8 +15,13 @@ from shared.tasks.box_stacking import BoxStacking
 from shared.tasks.cloth_folding import ClothFolding
 from shared.tasks.declared import DataTask
 from shared.tasks.spec import TaskSpec
+from shared.tasks.tshirt_folding import TshirtFolding
 
-_TASKS: dict[str, Callable[[], Task]] = {"box_stacking": BoxStacking, "cloth_folding": ClothFolding}
+_TASKS: dict[str, Callable[[], Task]] = {
+    "box_stacking": BoxStacking,
+    "cloth_folding": ClothFolding,
+    "tshirt_folding": TshirtFolding,
+}
 _DECLARED: dict[str, DataTask] = {}
 
 

@@ -2,8 +2,8 @@
 
 The neck is at the top of the image, the sleeves to the left and right. A state is the set of
 folds the shirt shows, from the two sleeves (laid over the body along the armhole line), the two
-sides (the outer quarter of the body, carrying its sleeve, so that the two side flaps meet in
-the middle) and the bottom half (laid up over the top, carrying everything): 32 states. A sleeve
+sides (the outer fifth of the body, carrying its sleeve, so that the two side flaps lie side by
+side) and the bottom half (laid up over the top, carrying everything): 32 states. A sleeve
 folds or unfolds only while its side and the bottom half are unfolded; a side only while the
 bottom half is unfolded; the bottom half in any state: 80 directed transitions.
 
@@ -28,25 +28,33 @@ SIDE_OF = {"left_sleeve": "left_side", "right_sleeve": "right_side"}
 
 @dataclass(frozen=True)
 class TshirtConfig:
-    body_width: float = 0.32  # metres
-    body_height: float = 0.36
-    sleeve_length: float = 0.07  # out from the armhole; folded, it lies inside its side strip
-    sleeve_width: float = 0.09  # along the armhole, from the shoulder down
-    side_width: float = 0.08  # the side strip: a quarter of the body, the flaps meet in the middle
-    neck_width: float = 0.08
-    neck_depth: float = 0.045
+    body_width: float = 0.36  # metres
+    body_height: float = 0.40
+    sleeve_length: float = 0.055  # out from the armhole; folded, it lies inside its side strip
+    sleeve_width: float = 0.10  # along the armhole, from the shoulder down
+    # The side strip: a fifth of the body, so that the side flaps lie side by side and the
+    # sleeve a side carries (unfolded) lies between them, not on the other flap (see
+    # `__post_init__`): a quarter makes that sleeve lie on the other side's flap, and turning
+    # that flap back from under it drags the sleeve and its side along (measured).
+    side_width: float = 0.072
+    neck_width: float = 0.072
+    neck_depth: float = 0.05
     frame: int = 256
-    pixels_per_metre: float = 430.0  # the flat shirt spans 198 x 155 px of the frame
+    pixels_per_metre: float = 430.0  # the flat shirt spans 202 x 172 px of the frame
     tolerance: float = 10.0  # pixels a click may land from a move's canonical point
     pick_outside: float = 0.005  # m: a fold picks this far outside the flap's edge
     unfold_inset: float = 0.02  # m: an unfold picks the flap this far inside its folded edge
     side_pick_y: float = -0.09  # m: sides are picked low on the strip, away from the sleeves
+    half_pick_x: float = 0.07  # m: the bottom half is picked beside the neck notch, where a
+    # folded hem lies on the body (over the notch it would be a single layer)
 
     def __post_init__(self) -> None:
         if not 0 < self.sleeve_length < self.side_width:
             raise ValueError("a folded sleeve must lie inside its side strip")
         if not 0 < 2 * self.side_width <= self.body_width / 2 + 1e-9:
             raise ValueError("the side strips must not reach past the middle")
+        if self.sleeve_length >= self.body_width - 4 * self.side_width:
+            raise ValueError("a sleeve carried by its side must not reach the other side's flap")
         half_w = self.body_width / 2 + self.sleeve_length
         if 2 * half_w * self.pixels_per_metre >= self.frame:
             raise ValueError("the shirt must fit inside the frame")
@@ -110,14 +118,14 @@ class TshirtFolding(FoldingTask):
             "right_sleeve": (c.sleeve_length, sleeve_y),
             "left_side": (c.side_width, c.side_pick_y),
             "right_side": (c.side_width, c.side_pick_y),
-            "bottom_half": (top, 0.0),
+            "bottom_half": (top, c.half_pick_x),
         }
         out = {}
         for fold in FOLDS:
             point, normal = self.fold_line(fold)
             depth, along = edges[fold]
             tangent = np.array([normal[1], -normal[0]])
-            base = point + along * np.abs(tangent)
+            base = point + along * np.abs(tangent)  # along the line, towards +x or +y
 
             def at(distance: float, base: np.ndarray = base, normal: np.ndarray = normal) -> Pixel:
                 return self._pixel(*(base + distance * normal))
@@ -125,7 +133,7 @@ class TshirtFolding(FoldingTask):
             out["fold", fold] = Move(
                 "fold",
                 fold,
-                ClothAction(at(depth + c.pick_outside), at(-depth), 0),
+                ClothAction(at(depth + c.pick_outside), at(-depth - c.pick_outside), 0),
             )
             inset = depth - c.unfold_inset
             out["unfold", fold] = Move("unfold", fold, ClothAction(at(-inset), at(inset), 1))

@@ -1,0 +1,106 @@
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from shared.tasks import get_task
+from shared.tasks.base import IllegalActionError, InvalidStateError, optimal_moves
+from shared.tasks.folding import ClothAction, Pixel
+from shared.tasks.tshirt_folding import FOLDS, TshirtConfig, TshirtFolding
+
+TASK = TshirtFolding()
+
+
+def test_thirty_two_states_eighty_transitions_and_plans_up_to_eight_moves():
+    states = TASK.all_states()
+    assert len(set(states)) == 32
+    assert sum(len(TASK.legal_actions(s)) for s in states) == 80
+    assert max(optimal_moves(TASK, a, b) for a in states for b in states) == 8
+    for s in states:
+        assert TASK.parse_state(TASK.state_to_json(s)) == s
+        assert TASK.array_to_state(TASK.state_to_array(s)) == s
+        for action, t in TASK.neighbours(s):
+            assert len(set(s) ^ set(t)) == 1
+            assert TASK.apply(t, TASK.moves["unfold" if len(t) > len(s) else "fold",
+                                            (set(s) ^ set(t)).pop()].action) == s  # fmt: skip
+
+
+def test_the_rules_of_the_issue():
+    flat = ()
+    assert len(TASK.legal_actions(flat)) == 5  # every fold
+    half = ("bottom_half",)
+    assert [TASK.match(a).fold for a in TASK.legal_actions(half)] == ["bottom_half"]
+    side = ("left_side",)
+    legal = {(TASK.match(a).kind, TASK.match(a).fold) for a in TASK.legal_actions(side)}
+    assert legal == {
+        ("unfold", "left_side"),
+        ("fold", "right_sleeve"),
+        ("fold", "right_side"),
+        ("fold", "bottom_half"),
+    }
+    fold = TASK.moves["fold", "left_sleeve"].action
+    with pytest.raises(IllegalActionError, match="'left_sleeve' cannot fold while 'left_side'"):
+        TASK.apply(side, fold)
+    with pytest.raises(IllegalActionError, match="while the bottom half is folded"):
+        TASK.apply(("left_sleeve", "bottom_half"), TASK.moves["unfold", "left_sleeve"].action)
+
+
+def test_moves_are_told_apart_by_more_than_twice_the_tolerance():
+    moves = list(TASK.moves.values())
+    assert len(moves) == 10
+    for a, b in itertools.combinations(moves, 2):
+        if a.action.height != b.action.height:
+            continue
+        gap = max(
+            np.hypot(*np.subtract(a.action.pick, b.action.pick)),
+            np.hypot(*np.subtract(a.action.release, b.action.release)),
+        )
+        assert gap > 2 * TASK.tolerance, (a, b)
+
+
+def test_a_click_within_tolerance_names_the_move_and_one_beyond_it_none():
+    move = TASK.moves["fold", "right_side"]
+    pick, release = move.action.pick, move.action.release
+    near = ClothAction(Pixel(pick.row + 7, pick.col - 7), release, 0)
+    assert TASK.match(near) == move
+    far = ClothAction(Pixel(pick.row + 11, pick.col), release, 0)
+    assert TASK.match(far) is None
+    assert TASK.match(ClothAction(pick, release, 1)) is None  # height is part of the move
+
+
+def test_fold_lines_put_a_folded_sleeve_inside_its_strip_and_the_flaps_side_by_side():
+    c = TASK.config
+    assert c.armhole - c.sleeve_length > c.side_line  # a folded sleeve lies inside the strip
+    flap_edge = c.armhole - 2 * c.side_width  # a folded side's outer edge, now near the middle
+    carried_tip = flap_edge - c.sleeve_length  # the tip of the unfolded sleeve it carries
+    assert 0 < flap_edge and carried_tip > -flap_edge  # it stops short of the other flap
+    with pytest.raises(ValueError, match="other side's flap"):
+        TshirtConfig(side_width=0.08, sleeve_length=0.06)
+
+
+def test_info_follows_the_interface():
+    info = get_task("tshirt_folding").info()
+    assert info["folds"] == list(FOLDS)
+    assert (info["num_states"], info["num_transitions"], info["image_frame"]) == (32, 80, 256)
+    assert info["tolerance_px"] == TASK.tolerance
+    assert {(m["kind"], m["fold"]) for m in info["moves"]} == {
+        (k, f) for k in ("fold", "unfold") for f in FOLDS
+    }
+    for m in info["moves"]:
+        assert TASK.parse_action(m["action"]) == TASK.moves[m["kind"], m["fold"]].action
+    json.dumps(info)
+
+
+@pytest.mark.parametrize(
+    ("state", "message"),
+    [
+        ({"folds": ["left_cuff"]}, r"state.folds\[0\]: unknown fold 'left_cuff'"),
+        ({"folds": ["left_side", "left_side"]}, r"state.folds\[1\]: fold 'left_side' appears"),
+        ({"folds": "bottom_half"}, "state.folds: expected a list"),
+        ({"stacks": []}, "'folds' list"),
+    ],
+)
+def test_invalid_states_are_named(state, message):
+    with pytest.raises(InvalidStateError, match=message):
+        TASK.parse_state(state)
