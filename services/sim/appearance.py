@@ -57,12 +57,16 @@ def post_process(image: np.ndarray, sample: ImageSample) -> np.ndarray:
         return np.asarray(decoded.convert("RGB")).copy()
 
 
-def _only(world: World, kind: type, what: str) -> Any:
+def _only(world: World, name: str, kind: type) -> Any:
+    """`world.<name>` when it is a `kind` (the worlds' convention), else its one `kind`."""
+    named = getattr(world, name, None)
+    if isinstance(named, kind):
+        return named
     found = [v for v in vars(world).values() if isinstance(v, kind)]
     if len(found) != 1:
         raise TypeError(
-            f"{type(world).__name__}: appearance needs exactly one {what} attribute, "
-            f"found {len(found)}"
+            f"{type(world).__name__}: appearance needs a {kind.__name__} as .{name} or as its "
+            f"only one, found {len(found)}"
         )
     return found[0]
 
@@ -90,13 +94,14 @@ def _turn_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 class SceneModder:
     """Changes one MuJoCo model for one render and puts it back: lights, the rendering camera's
-    pose, the table's colour and texture. Works on any world holding one MjModel, one MjData
-    and one OffscreenCamera, a geom named `table` being optional."""
+    pose, the table's colour and texture. Works on any world with an MjModel, an MjData and an
+    OffscreenCamera (as .model, .data, .camera, or its only ones); a geom named `table` is
+    optional (without a material its rgba varies, without a texture its material's)."""
 
     def __init__(self, world: World) -> None:
-        self.model: mujoco.MjModel = _only(world, mujoco.MjModel, "MjModel")
-        self.data: mujoco.MjData = _only(world, mujoco.MjData, "MjData")
-        self.camera: OffscreenCamera = _only(world, OffscreenCamera, "OffscreenCamera")
+        self.model: mujoco.MjModel = _only(world, "model", mujoco.MjModel)
+        self.data: mujoco.MjData = _only(world, "data", mujoco.MjData)
+        self.camera: OffscreenCamera = _only(world, "camera", OffscreenCamera)
         m = self.model
         self._cam = m.camera(self.camera.camera).id
         self._mat = self._tex = -1
