@@ -110,7 +110,7 @@ def run_robot(
     task = get_task(task_name)
     planner = RobotPlanner(session, robot_id, task_name)
 
-    def progress(step: int, action: Any, state: Any) -> None:
+    def progress(step: int, action: Any, state: Any, image: np.ndarray) -> None:
         print(
             f"[{robot_id}] step {step}: {json.dumps(task.action_to_json(action))} -> "
             f"{json.dumps(task.state_to_json(state))}",

@@ -15,6 +15,7 @@ from pathlib import Path
 import zenoh
 
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
+from shared.appearance import CLEAN, trained_appearance
 from shared.bus import Operation, Server, close_quietly, new_instance_id, open_session, service_key
 from shared.checkpoint import MANIFEST, CheckpointError, verify, weights_file
 from shared.messages import InfoReply
@@ -32,6 +33,7 @@ class ModelInfo:
     model_id: str  # the first 12 hex digits of the VAE weights' sha256
     image_size: int
     latent_dim: int
+    appearance: str = CLEAN  # the training data's look: the default for rendering to it
 
     @classmethod
     def read(cls, directory: Path | str, require_sealed: bool = False) -> ModelInfo:
@@ -59,6 +61,7 @@ class ModelInfo:
             model_id=digest.hexdigest()[:12],
             image_size=int(config["model"]["image_size"]),
             latent_dim=int(config["model"]["latent_dim"]),
+            appearance=trained_appearance(config),
         )
 
 

@@ -75,9 +75,19 @@ class PlanningClient:
         """The default deadline of a request begun now (`time.monotonic()` seconds)."""
         return time.monotonic() + self.deadline_s
 
-    def render(self, states: list[Any], seed: int = 0, deadline: float | None = None) -> np.ndarray:
+    def render(
+        self,
+        states: list[Any],
+        seed: int = 0,
+        deadline: float | None = None,
+        appearance: str | None = None,
+    ) -> np.ndarray:
+        """Images of `states`; `appearance` None: the served model's training appearance."""
         request = RenderRequest(
-            task=self.task_name, states=[self.task.state_to_json(s) for s in states], seed=seed
+            task=self.task_name,
+            states=[self.task.state_to_json(s) for s in states],
+            seed=seed,
+            appearance=appearance,
         )
         rendering = self._call("sim", "render", request, RenderReply, deadline or self.deadline())
         reply: RenderReply = rendering.result()

@@ -132,6 +132,7 @@ class ProposeReply(Message):
 class RenderRequest(TaskMessage):
     states: list[Any] = Field(min_length=1, max_length=64)  # the task's state JSON
     seed: int = Field(0, ge=0, lt=2**63)
+    appearance: str | None = None  # a level of shared.appearance; None: the model's training one
 
 
 class RenderReply(Message):
@@ -155,6 +156,7 @@ class RunRequest(TaskMessage):
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
     seed: int = Field(0, ge=0, lt=2**63)
     progress: str | None = Field(None, pattern=PROGRESS_ID_PATTERN)
+    appearance: str | None = None  # a level of shared.appearance; None: the model's training one
 
 
 class RunStep(Message):

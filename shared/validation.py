@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from shared.appearance import APPEARANCES, LEVELS
 from shared.messages import WireArray
 from shared.tasks.base import InvalidStateError, Task
 
@@ -57,6 +58,16 @@ def check_images(
 def check_task(requested: str, served: str) -> None:
     if requested != served:
         raise FieldError("task", f"this instance serves {served!r}, not {requested!r}")
+
+
+def check_appearance(requested: str | None, default: str) -> str:
+    """The level asked for (None: `default`, the model's training appearance)."""
+    level = default if requested is None else requested
+    if level not in APPEARANCES:
+        raise FieldError(
+            "appearance", f"unknown level {level!r}; known levels are {', '.join(LEVELS)}"
+        )
+    return level
 
 
 def check_latents(

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from shared.appearance import CLEAN, LEVELS, levels_help
 from shared.tasks import task_names
 
 
@@ -21,6 +22,7 @@ def cmd_data_generate(args: argparse.Namespace) -> int:
         workers=args.workers,
         episode_length=args.episode_length,
         starts=args.starts,
+        appearance=args.appearance,
     )
     result = generate(cfg, args.out, overwrite=args.overwrite)
     counts = result["counts"]
@@ -91,6 +93,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="balanced",
         choices=["balanced", "random"],
         help="episode start states: every state in turn (default) or drawn independently",
+    )
+    gen.add_argument(
+        "--appearance",
+        default=CLEAN,
+        choices=LEVELS,
+        help=f"how the images look, recorded in the manifest ({levels_help()})",
     )
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")

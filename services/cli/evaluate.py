@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from services.cli.common import single_thread_torch
+from shared.appearance import LEVELS, levels_help
 
 
 def cmd_eval_vfm(args: argparse.Namespace) -> int:
@@ -62,10 +63,12 @@ def cmd_eval_apn(args: argparse.Namespace) -> int:
 
 
 def cmd_eval_system(args: argparse.Namespace) -> int:
+    from services.encoder.checkpoint import read_vae_config
     from services.planner.action_plans import ActionPlanner
     from services.planner.build import load_labels
     from services.sim.closed_loop import PlanJudge, evaluate_system
     from services.sim.worlds import has_world, make_world
+    from shared.appearance import trained_appearance
 
     single_thread_torch()
     planner = ActionPlanner.from_model_dir(args.model)
@@ -77,10 +80,12 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
     labels = load_labels(Path(args.model) / "roadmap", planner.task.name)
     task = planner.task
     judge = PlanJudge(task, [task.array_to_state(s) for s in labels.states])
-    with make_world(task.name, planner.image_size) as world:
+    appearance = args.appearance or trained_appearance(read_vae_config(Path(args.model) / "vae"))
+    with make_world(task.name, planner.image_size, appearance=appearance) as world:
         result = evaluate_system(
             planner, world, task, args.pairs, seed=args.seed, max_steps=args.max_steps, judge=judge
         )
+    result["appearance"] = appearance
     if not args.json:
         for key, value in result.items():
             print(f"{key:>20}: {value}")
@@ -125,5 +130,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     system.add_argument("--pairs", type=int, default=1000)
     system.add_argument("--seed", type=int, default=0)
     system.add_argument("--max-steps", type=int, default=20)
+    system.add_argument(
+        "--appearance",
+        choices=LEVELS,
+        help=f"how the simulated camera sees (default: the model's training data's; "
+        f"{levels_help()})",
+    )
     system.add_argument("--json", action="store_true")
     system.set_defaults(handler=cmd_eval_system)

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from services.cli.common import json_arg
+from shared.appearance import CLEAN, LEVELS, levels_help
 from shared.tasks import get_task, task_names
 
 
@@ -17,7 +18,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     task = get_task(args.task)
     state = task.parse_state(json_arg(args.state))
-    with make_world(args.task, args.size) as world:
+    with make_world(args.task, args.size, appearance=args.appearance) as world:
         world.reset(state, np.random.default_rng(args.seed))
         Image.fromarray(world.render()).save(args.out)
     print(f"wrote {args.out}")
@@ -73,6 +74,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     render.add_argument("--state", required=True, help="state JSON, inline or a file path")
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--size", type=int, default=64)
+    render.add_argument(
+        "--appearance", default=CLEAN, choices=LEVELS, help=f"how the image looks ({levels_help()})"
+    )
     render.add_argument("--out", required=True, type=Path)
     render.set_defaults(handler=cmd_render)
 

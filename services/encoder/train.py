@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from services.encoder.checkpoint import encode_images, load_vae, save_vae
 from services.encoder.model import VAE, VAEConfig, to_tensor
+from shared.appearance import manifest_appearance
 from shared.dataset import Dataset, load_dataset
 from shared.training import minibatches
 
@@ -242,6 +243,7 @@ def train_vae(
         "dataset": {
             "path": str(data_dir),
             **{k: data.manifest[k] for k in ("task", "seed", "image_size", "counts")},
+            "appearance": manifest_appearance(data.manifest),  # what the model expects to see
             "spec": data.spec.to_json(),  # serving a task defined by its data needs it
         },
         "train_seconds": time.perf_counter() - started,

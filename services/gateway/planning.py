@@ -197,7 +197,8 @@ class Gateway:
         task = get_task(self.simulated(request.task, "/render"))
         state = parse_state(task, "state", request.state)
         deadline = deadline or time.monotonic() + self.settings.deadline_s
-        image = self.client(request.task).render([state], request.seed, deadline)[0]
+        client = self.client(request.task)
+        image = client.render([state], request.seed, deadline, request.appearance)[0]
         return RenderResponse(image=png_b64(image))
 
     def run_request(self, request: ExecuteRequest, progress: str | None = None) -> RunRequest:
@@ -220,6 +221,7 @@ class Gateway:
             max_plans=request.max_plans,
             seed=request.seed,
             progress=progress,
+            appearance=request.appearance,
         )
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:

@@ -6,6 +6,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from shared.appearance import APPEARANCES, LEVELS
 from shared.bus import ROBOT_ID_PATTERN
 from shared.messages import MAX_PLANS
 from shared.tasks import known_tasks
@@ -24,6 +25,27 @@ class TaskRequest(Strict):
         if task not in known_tasks():
             raise ValueError(f"unknown task {task!r}; known tasks are {known_tasks()}")
         return task
+
+
+APPEARANCE_DESCRIPTION = (
+    "how the simulated camera sees: clean (a fixed rendering), camera (lights, camera pose, "
+    "table, white balance, exposure, noise and JPEG varied as a real camera would) or shifted "
+    "(every camera range doubled: for testing generalisation only); default: the appearance "
+    "of the served model's training data"
+)
+
+
+class AppearanceRequest(Strict):
+    appearance: str | None = Field(None, description=APPEARANCE_DESCRIPTION, examples=list(LEVELS))
+
+    @field_validator("appearance")
+    @classmethod
+    def _known_level(cls, appearance: str | None) -> str | None:
+        if appearance is not None and appearance not in APPEARANCES:
+            raise ValueError(
+                f"unknown appearance level {appearance!r}; known levels are {', '.join(LEVELS)}"
+            )
+        return appearance
 
 
 class Endpoint(Strict):
@@ -64,7 +86,7 @@ class PlanResponse(BaseModel):
     reason: str | None = Field(None, description="why there is no plan, when plans is empty")
 
 
-class RenderRequest(TaskRequest):
+class RenderRequest(TaskRequest, AppearanceRequest):
     state: dict[str, Any]
     seed: int = Field(0, ge=0, le=2**32 - 1)
 
@@ -73,7 +95,7 @@ class RenderResponse(BaseModel):
     image: str
 
 
-class ExecuteRequest(TaskRequest):
+class ExecuteRequest(TaskRequest, AppearanceRequest):
     start: StateEndpoint
     goal: Endpoint
     max_steps: int = Field(20, ge=1, le=100)

@@ -48,11 +48,12 @@ def run_episode(
     goal_image: np.ndarray | None = None,
     max_steps: int = 20,
     max_plans: int = 8,
-    on_step: Callable[[int, Any, Any], None] | None = None,
+    on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 
-    `on_step(step, action, state)` is told of every executed action (progress for robots).
+    `on_step(step, action, state, image)` is told of every executed action and the image
+    recorded after it (progress for robots; a camera-like world draws each image once).
     """
     if goal_image is None:
         if goal is None:
@@ -90,7 +91,7 @@ def run_episode(
         episode.states.append(state)
         episode.images.append(world.render())
         if on_step is not None:
-            on_step(len(episode.actions), plan.actions[0], state)
+            on_step(len(episode.actions), plan.actions[0], state, episode.images[-1])
     try:
         episode.final_state = world.read_state()
     except WorldError:  # the action left the world in no valid state (a wrecked cloth, say)

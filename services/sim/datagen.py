@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from shared import dataset as ds
+from shared.appearance import CLEAN, get_appearance
 from shared.tasks import get_task
 from shared.tasks.base import Task, World, WorldError
 
@@ -40,6 +41,10 @@ class GenerateConfig:
     # before this option existed (with 1000 tuples, 1-2 states never appeared).
     starts: Literal["balanced", "random"] = "balanced"
     world_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"lattice": 5}
+    # How the images look (shared.appearance): "clean" renders as before this option existed;
+    # "camera" varies lights, camera pose, table and the camera's pipeline, drawn per episode
+    # from the episode's own seed; "shifted" doubles every range (test data only).
+    appearance: str = CLEAN
 
     def __post_init__(self) -> None:
         if self.pairs < 1:
@@ -52,6 +57,7 @@ class GenerateConfig:
             raise ValueError(f"episode_length must be at least 1, got {self.episode_length}")
         if self.starts not in ("balanced", "random"):
             raise ValueError(f"starts must be balanced or random, got {self.starts!r}")
+        get_appearance(self.appearance)  # names the field and the known levels
         if self.image_size not in range(16, 1025):
             raise ValueError(f"image_size {self.image_size} is out of range 16..1024")
 
@@ -87,7 +93,8 @@ def make_episode(
     """Tuples start .. start + len(flags) - 1: one walk from state `first` (an index into
     task.all_states(), or None for a random state), each tuple's second state the next one's
     first. Seeded by (seed, start, attempt) alone, so the bytes do not depend on how episodes
-    are spread over workers; a walk whose physics fails starts again. Returns the tuples and
+    are spread over workers (a camera-like world seeds its look from the same rng's state at
+    reset, without drawing from it); a walk whose physics fails starts again. Returns the tuples and
     the number of failed attempts before them."""
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, start, attempt])
@@ -130,11 +137,14 @@ def make_episode(
 _worker: tuple[Task, World] | None = None
 
 
-def _init_worker(task_name: str, image_size: int, options: dict[str, Any]) -> None:
+def _init_worker(
+    task_name: str, image_size: int, options: dict[str, Any], appearance: str = CLEAN
+) -> None:
     global _worker
     from services.sim.worlds import make_world
 
-    _worker = (get_task(task_name), make_world(task_name, image_size, **options))
+    world = make_world(task_name, image_size, appearance=appearance, **options)
+    _worker = (get_task(task_name), world)
 
 
 Episode = tuple[int, list[int], int | None]  # first tuple, action flags, first state's index
@@ -195,11 +205,11 @@ def generate(
 
     bar = tqdm(total=cfg.pairs, unit="pair", desc=f"generate {cfg.task}", disable=not progress)
     if cfg.workers == 1:
-        _init_worker(cfg.task, cfg.image_size, cfg.world_options)
+        _init_worker(cfg.task, cfg.image_size, cfg.world_options, cfg.appearance)
         results = map(_make_chunk, jobs)
         pool = None
     else:
-        init = (cfg.task, cfg.image_size, cfg.world_options)
+        init = (cfg.task, cfg.image_size, cfg.world_options, cfg.appearance)
         pool = mp.get_context("spawn").Pool(cfg.workers, initializer=_init_worker, initargs=init)
         results = pool.imap(_make_chunk, jobs)
     try:
@@ -225,6 +235,7 @@ def generate(
         "task": cfg.task,
         "spec": spec.to_json(),
         "image_size": cfg.image_size,
+        "appearance": get_appearance(cfg.appearance).to_json(),  # how the images look
         "seed": cfg.seed,
         "counts": {
             "tuples": cfg.pairs,

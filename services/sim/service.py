@@ -15,6 +15,7 @@ import numpy as np
 import zenoh
 
 from services.runtime import ServiceContext
+from services.sim.appearance import AppearanceWorld
 from services.sim.closed_loop import run_episode
 from services.sim.settled import FOLDER, default_folders, ensure_complete
 from services.sim.worlds import make_world, world_class
@@ -34,7 +35,13 @@ from shared.messages import (
 )
 from shared.tasks import get_task
 from shared.tasks.base import World
-from shared.validation import FieldError, check_images, check_task, parse_state
+from shared.validation import (
+    FieldError,
+    check_appearance,
+    check_images,
+    check_task,
+    parse_state,
+)
 
 log = logging.getLogger(__name__)
 
@@ -60,12 +67,15 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
     task = get_task(name)
     # One world per operation, made by that operation's worker thread on first use: an EGL
     # context can only be current in one thread, and the worker is the thread that renders.
-    worlds: dict[str, World] = {}
+    # Each is seen at a request's appearance level, by default the model's training one.
+    worlds: dict[str, AppearanceWorld] = {}
     new_world = world_maker(name, size, context.model.directory)
+    trained = context.model.appearance
 
-    def world(operation: str) -> World:
+    def world(operation: str, appearance: str = trained) -> AppearanceWorld:
         if operation not in worlds:
-            worlds[operation] = new_world()
+            worlds[operation] = AppearanceWorld(new_world())
+        worlds[operation].use(appearance)
         return worlds[operation]
 
     planner = PlanningClient(context.session, name, context.settings.deadline_s)
@@ -74,8 +84,9 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         request = unpack(payload, RenderRequest)
         check_task(request.task, name)
         states = [parse_state(task, f"states.{i}", s) for i, s in enumerate(request.states)]
+        appearance = check_appearance(request.appearance, trained)
         rng = np.random.default_rng(request.seed)
-        render_world = world("render")
+        render_world = world("render", appearance)
         images = []
         for state in states:
             render_world.reset(state, rng)
@@ -96,18 +107,18 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             goal_image = check_images("goal_image", request.goal_image, size)
         if (goal is None) == (goal_image is None):
             raise FieldError("goal_state", "give exactly one of goal_state and goal_image")
+        run_world = world("run", check_appearance(request.appearance, trained))
         on_step = None
         if request.progress is not None:
             key = progress_key(name, request.progress)
-            run_world = world("run")
 
-            def on_step(step: int, action: Any, state: Any) -> None:
+            def on_step(step: int, action: Any, state: Any, image: np.ndarray) -> None:
                 # What the camera sees now: the image the episode has just recorded.
                 message = RunStep(
                     step=step,
                     action=task.action_to_json(action),
                     state=task.state_to_json(state),
-                    image=WireArray.of(run_world.render()),
+                    image=WireArray.of(image),
                 )
                 try:
                     context.session.put(key, pack(message), encoding=MSGPACK)
@@ -116,7 +127,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
 
         episode = run_episode(
             planner,
-            world("run"),
+            run_world,
             start,
             goal,
             np.random.default_rng(request.seed),

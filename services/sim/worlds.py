@@ -31,6 +31,15 @@ def world_class(task_name: str) -> type[World]:
     return getattr(importlib.import_module(module), name)
 
 
-def make_world(task_name: str, image_size: int = 64, **options: Any) -> World:
-    """The task's world; `options` go to its constructor (e.g. a cloth's `lattice`)."""
-    return world_class(task_name)(get_task(task_name), image_size=image_size, **options)
+def make_world(
+    task_name: str, image_size: int = 64, appearance: str | None = None, **options: Any
+) -> World:
+    """The task's world; `options` go to its constructor (e.g. a cloth's `lattice`). With an
+    `appearance` level (shared.appearance), the world seen through its modder (at `clean`, a
+    wrapper rendering exactly what the world does)."""
+    world = world_class(task_name)(get_task(task_name), image_size=image_size, **options)
+    if appearance is None:
+        return world
+    from services.sim.appearance import AppearanceWorld
+
+    return AppearanceWorld(world, appearance)

@@ -94,4 +94,22 @@ def test_eval_system_prints_table_three_for_the_shipped_model(capsys):
     assert main(["eval", "system", "--model", str(model), "--pairs", "3", "--json"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["pairs"] == 3 and result["success"] == 100.0
+    assert result["appearance"] == "clean"  # the shipped model's training data's
     assert result["table3"] == {"system": 100.0, "transitions": 100.0, "vfm": 100.0, "apn": 100.0}
+
+
+def test_render_takes_an_appearance_level(tmp_path, capsys):
+    import numpy as np
+    from PIL import Image
+
+    state = '{"stacks": [["red"], ["green", "blue"], ["yellow"]]}'
+    images = {}
+    for level in ("clean", "camera"):
+        out = tmp_path / f"{level}.png"
+        assert main(["render", "--state", state, "--appearance", level, "--out", str(out)]) == 0
+        images[level] = np.asarray(Image.open(out))
+    assert not np.array_equal(images["clean"], images["camera"])
+    with pytest.raises(SystemExit) as exit_info:
+        main(["render", "--state", state, "--appearance", "foggy", "--out", str(out)])
+    assert exit_info.value.code == 2
+    assert "--appearance: invalid choice: 'foggy'" in capsys.readouterr().err

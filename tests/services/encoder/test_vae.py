@@ -98,6 +98,7 @@ def test_train_is_seeded_and_round_trips(tiny_data, tmp_path):
     assert all(x["grad_norm_max"] > 0 and x["clipped_steps"] >= 0 for x in lines)
     model, config = load_vae(tmp_path / "a")
     assert config["train"]["metric"] == "l1" and config["dataset"]["seed"] == 11
+    assert config["dataset"]["appearance"] == "clean"  # what serving renders by default
     images = np.zeros((3, 32, 32, 3), np.uint8)
     mu, _ = encode_images(model, images)
     assert mu.shape == (3, 8) and np.allclose(mu[0], mu[1])

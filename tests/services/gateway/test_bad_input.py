@@ -108,3 +108,18 @@ def test_state_objects_refuse_unknown_keys(http):
         "state",
         "x",
     ]
+
+
+@pytest.mark.parametrize("path", ["/render", "/execute"])
+def test_an_unknown_appearance_level_gets_422_naming_it(http, path):
+    body = {"task": "box_stacking", "state": json.loads(STATE), "appearance": "foggy"}
+    if path == "/execute":
+        body = {"task": "box_stacking", **json.loads("{" + ENDS + "}"), "appearance": "foggy"}
+    reply = http.post(path, json=body)
+    assert reply.status_code == 422, reply.text
+    (error,) = reply.json()["detail"]
+    assert error["loc"] == ["body", "appearance"]
+    assert "unknown appearance level 'foggy'" in error["msg"]
+    assert "clean, camera, shifted" in error["msg"]
+    body["appearance"] = "camera"  # a known level passes validation (no sim here to answer)
+    assert http.post(path, json=body).status_code != 422

@@ -3,7 +3,14 @@ import json
 import numpy as np
 import pytest
 
-from services.sim.datagen import GenerateConfig, action_flags, balanced_starts, generate
+from services.sim.appearance import AppearanceWorld
+from services.sim.datagen import (
+    GenerateConfig,
+    action_flags,
+    balanced_starts,
+    generate,
+    make_episode,
+)
 from shared.dataset import DatasetError, load_dataset
 from shared.tasks import get_task
 
@@ -107,6 +114,7 @@ def test_action_share_is_exact():
         ({"pairs": 0}, "pairs"),
         ({"action_fraction": 1.5}, "action_fraction"),
         ({"image_size": 8}, "image_size"),
+        ({"appearance": "foggy"}, "appearance: unknown appearance level 'foggy'"),
     ],
 )
 def test_bad_config(kw, message):
@@ -160,3 +168,40 @@ def test_arrays_that_break_the_spec_are_refused_before_writing(tmp_path):
     with pytest.raises(DatasetError, match="expected int16"):
         write_shard(tmp_path / "s.npz", arrays, task.spec)
     assert not (tmp_path / "s.npz").exists()
+
+
+def _same_rows(a, b):
+    return all(np.array_equal(x[f], y[f]) for x, y in zip(a, b, strict=True) for f in x)
+
+
+def test_clean_tuples_are_the_bare_worlds(world):
+    task = world.task
+    bare, _ = make_episode(task, world, 11, 0, [1, 0, 1])
+    clean, _ = make_episode(task, AppearanceWorld(world, "clean"), 11, 0, [1, 0, 1])
+    assert _same_rows(bare, clean)
+
+
+def test_camera_episodes_depend_on_their_own_seed_only(world):
+    """An episode's bytes are the same whichever episodes its worker made before it."""
+    task, camera = world.task, AppearanceWorld(world, "camera")
+    alone, _ = make_episode(task, camera, 11, 5, [0, 1])
+    make_episode(task, camera, 11, 2, [1])
+    after_another, _ = make_episode(task, camera, 11, 5, [0, 1])
+    assert _same_rows(alone, after_another)
+    clean, _ = make_episode(task, world, 11, 5, [0, 1])
+    for looked, plain in zip(alone, clean, strict=True):  # the same physics, another look
+        assert all(np.array_equal(looked[f], plain[f]) for f in ("a", "u", "state1", "state2"))
+        assert not np.array_equal(looked["image1"], plain["image1"])
+
+
+def test_the_manifest_records_the_appearance(tmp_path):
+    _generate(tmp_path / "clean", pairs=6)
+    _generate(tmp_path / "camera", pairs=6, appearance="camera")
+    clean, camera = load_dataset(tmp_path / "clean"), load_dataset(tmp_path / "camera")
+    assert clean.manifest["appearance"] == {"level": "clean", "episode": None, "image": None}
+    recorded = camera.manifest["appearance"]
+    assert recorded["level"] == "camera" and camera.manifest["config"]["appearance"] == "camera"
+    assert recorded["episode"]["light_turn_deg"] == 20.0
+    assert recorded["image"]["jpeg_quality"] == [80, 95]
+    assert np.array_equal(clean.state1, camera.state1) and np.array_equal(clean.u, camera.u)
+    assert not np.array_equal(clean.image1, camera.image1)
