@@ -170,6 +170,15 @@ APPEARANCES: dict[str, Appearance] = {
     ),
 }
 LEVELS: tuple[str, ...] = tuple(APPEARANCES)
+# The look a task's data and renders take when none is asked for: box stacking and cloth
+# folding keep the clean renders their shipped models were trained on; the T-shirt, where the
+# method has to earn its results, looks like a camera's images (the paper's real-camera study).
+TASK_DEFAULTS: dict[str, str] = {"tshirt_folding": "camera"}
+
+
+def task_default(task: str) -> str:
+    """The appearance a task's data is generated at unless told otherwise."""
+    return TASK_DEFAULTS.get(task, CLEAN)
 
 
 def get_appearance(name: str, field: str = "appearance") -> Appearance:

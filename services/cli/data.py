@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from shared.appearance import CLEAN, LEVELS, levels_help
+from shared.appearance import LEVELS, levels_help
 from shared.tasks import task_names
 
 
@@ -96,9 +96,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     gen.add_argument(
         "--appearance",
-        default=CLEAN,
+        default=None,
         choices=LEVELS,
-        help=f"how the images look, recorded in the manifest ({levels_help()})",
+        help="how the images look, recorded in the manifest; default: the task's (camera for "
+        f"tshirt_folding, else clean) ({levels_help()})",
     )
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")

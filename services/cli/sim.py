@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from services.cli.common import json_arg
-from shared.appearance import CLEAN, LEVELS, levels_help
+from shared.appearance import LEVELS, levels_help, task_default
 from shared.tasks import get_task, task_names
 
 
@@ -18,7 +18,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     task = get_task(args.task)
     state = task.parse_state(json_arg(args.state))
-    with make_world(args.task, args.size, appearance=args.appearance) as world:
+    appearance = args.appearance or task_default(args.task)
+    with make_world(args.task, args.size, appearance=appearance) as world:
         world.reset(state, np.random.default_rng(args.seed))
         Image.fromarray(world.render()).save(args.out)
     print(f"wrote {args.out}")
@@ -39,7 +40,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     states = task.all_states()
     images, labels = [], []
-    with make_world(args.task, args.size) as world:
+    with make_world(args.task, args.size, appearance=task_default(args.task)) as world:
         if args.task == "box_stacking":
             picks = [states[i] for i in rng.choice(len(states), size=5, replace=False)]
             for state in picks:
@@ -54,8 +55,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             for state in picks:
                 world.reset(state, rng)
                 images.append(world.render())
-                initials = ("".join(w[0].upper() for w in f.split("_")) for f in state)
-                labels.append(" ".join(initials) or "flat")
+                labels.append(" ".join(map(task.short_name, state)) or "flat")
             action = task.legal_actions(picks[-1])[0]
             world.execute(world.demonstrated(action, rng), rng)
             what, columns = f"all {len(picks)} states and the last one after a move", 6
@@ -75,7 +75,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--size", type=int, default=64)
     render.add_argument(
-        "--appearance", default=CLEAN, choices=LEVELS, help=f"how the image looks ({levels_help()})"
+        "--appearance",
+        default=None,
+        choices=LEVELS,
+        help=f"how the image looks; default: the task's ({levels_help()})",
     )
     render.add_argument("--out", required=True, type=Path)
     render.set_defaults(handler=cmd_render)

@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from shared import dataset as ds
-from shared.appearance import CLEAN, get_appearance
+from shared.appearance import CLEAN, get_appearance, task_default
 from shared.tasks import get_task
 from shared.tasks.base import Task, World, WorldError
 
@@ -43,8 +43,9 @@ class GenerateConfig:
     world_options: dict[str, Any] = field(default_factory=dict)  # e.g. {"lattice": 5}
     # How the images look (shared.appearance): "clean" renders as before this option existed;
     # "camera" varies lights, camera pose, table and the camera's pipeline, drawn per episode
-    # from the episode's own seed; "shifted" doubles every range (test data only).
-    appearance: str = CLEAN
+    # from the episode's own seed; "shifted" doubles every range (test data only). None: the
+    # task's default (`shared.appearance.task_default`: camera for the T-shirt, else clean).
+    appearance: str | None = None
 
     def __post_init__(self) -> None:
         if self.pairs < 1:
@@ -57,6 +58,8 @@ class GenerateConfig:
             raise ValueError(f"episode_length must be at least 1, got {self.episode_length}")
         if self.starts not in ("balanced", "random"):
             raise ValueError(f"starts must be balanced or random, got {self.starts!r}")
+        if self.appearance is None:
+            object.__setattr__(self, "appearance", task_default(self.task))
         get_appearance(self.appearance)  # names the field and the known levels
         if self.image_size not in range(16, 1025):
             raise ValueError(f"image_size {self.image_size} is out of range 16..1024")

@@ -64,6 +64,10 @@ class FoldingTask(Task[Folds, ClothAction]):
     def moves(self) -> dict[tuple[str, str], Move]:
         """(kind, fold) -> the move."""
 
+    def short_name(self, fold: str) -> str:
+        """A few letters for labels under small pictures: the initials of the name's words."""
+        return "".join(w[0].upper() for w in fold.split("_"))
+
     def refusal(self, state: Folds, move: Move) -> str | None:
         """Why `move` may not be made in `state` (beyond folding the folded or unfolding the
         flat), or None; tasks whose moves wait for others override it."""

@@ -2,10 +2,11 @@
 
 The neck is at the top of the image, the sleeves to the left and right. A state is the set of
 folds the shirt shows, from the two sleeves (laid over the body along the armhole line), the two
-sides (the outer fifth of the body, carrying its sleeve, so that the two side flaps lie side by
-side) and the bottom half (laid up over the top, carrying everything): 32 states. A sleeve
-folds or unfolds only while its side and the bottom half are unfolded; a side only while the
-bottom half is unfolded; the bottom half in any state: 80 directed transitions.
+sides (the outer sixth of the body, carrying its sleeve, so that the two side flaps and the
+sleeves they carry lie side by side, never on each other) and the bottom half (laid up over
+the top, carrying everything): 32 states. A sleeve folds or unfolds only while its side and the
+bottom half are unfolded; a side only while the bottom half is unfolded; the bottom half in any
+state: 80 directed transitions.
 
 Actions are the paper's u = (p, r, h) in the 256 x 256 frame (`shared.tasks.folding`). The
 garment's shape is given in metres (x right, y up, origin at the body's centre) and drawn into
@@ -23,6 +24,8 @@ import numpy as np
 from shared.tasks.folding import ClothAction, FoldingTask, Folds, Move, Pixel
 
 FOLDS = ("left_sleeve", "right_sleeve", "left_side", "right_side", "bottom_half")
+SHORT = {"left_sleeve": "a", "right_sleeve": "b", "left_side": "L", "right_side": "R"}
+SHORT["bottom_half"] = "H"  # the letters of the reference probe's picture
 SIDE_OF = {"left_sleeve": "left_side", "right_sleeve": "right_side"}
 
 
@@ -30,17 +33,17 @@ SIDE_OF = {"left_sleeve": "left_side", "right_sleeve": "right_side"}
 class TshirtConfig:
     body_width: float = 0.36  # metres
     body_height: float = 0.40
-    sleeve_length: float = 0.055  # out from the armhole; folded, it lies inside its side strip
+    sleeve_length: float = 0.045  # out from the armhole; folded, it lies inside its side strip
     sleeve_width: float = 0.10  # along the armhole, from the shoulder down
-    # The side strip: a fifth of the body, so that the side flaps lie side by side and the
-    # sleeve a side carries (unfolded) lies between them, not on the other flap (see
-    # `__post_init__`): a quarter makes that sleeve lie on the other side's flap, and turning
-    # that flap back from under it drags the sleeve and its side along (measured).
-    side_width: float = 0.072
-    neck_width: float = 0.072
+    # The side strip: a sixth of the body. Folded, each side lays its sleeve (unfolded) into
+    # the middle, between the two flaps; with wider strips or longer sleeves that sleeve lies on
+    # the other side's flap or sleeve, and turning the lower one back from under it drags the
+    # upper one along (measured: 2 of 4 such unfolds failed). `__post_init__` keeps them apart.
+    side_width: float = 0.06
+    neck_width: float = 0.06
     neck_depth: float = 0.05
     frame: int = 256
-    pixels_per_metre: float = 430.0  # the flat shirt spans 202 x 172 px of the frame
+    pixels_per_metre: float = 430.0  # the flat shirt spans 194 x 172 px of the frame
     tolerance: float = 10.0  # pixels a click may land from a move's canonical point
     pick_outside: float = 0.005  # m: a fold picks this far outside the flap's edge
     unfold_inset: float = 0.02  # m: an unfold picks the flap this far inside its folded edge
@@ -53,8 +56,9 @@ class TshirtConfig:
             raise ValueError("a folded sleeve must lie inside its side strip")
         if not 0 < 2 * self.side_width <= self.body_width / 2 + 1e-9:
             raise ValueError("the side strips must not reach past the middle")
-        if self.sleeve_length >= self.body_width - 4 * self.side_width:
-            raise ValueError("a sleeve carried by its side must not reach the other side's flap")
+        # a folded side lays its sleeve's root at x = +-(armhole - 2 side_width), pointing in
+        if self.sleeve_length >= self.body_width / 2 - 2 * self.side_width - 0.005:
+            raise ValueError("a sleeve carried by its side must not reach the other side's")
         half_w = self.body_width / 2 + self.sleeve_length
         if 2 * half_w * self.pixels_per_metre >= self.frame:
             raise ValueError("the shirt must fit inside the frame")
@@ -138,6 +142,9 @@ class TshirtFolding(FoldingTask):
             inset = depth - c.unfold_inset
             out["unfold", fold] = Move("unfold", fold, ClothAction(at(-inset), at(inset), 1))
         return out
+
+    def short_name(self, fold: str) -> str:
+        return SHORT[fold]
 
     def refusal(self, state: Folds, move: Move) -> str | None:
         if move.fold != "bottom_half" and "bottom_half" in state:

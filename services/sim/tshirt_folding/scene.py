@@ -27,7 +27,7 @@ class ShirtMesh:
     radius: float = 0.003  # flex collision radius: the shirt lies at z = radius
     mass: float = 0.10
     fovy: float = 40.0  # degrees
-    body_columns: int = 10  # cells across the body (even: the middle is a grid line)
+    body_columns: int = 12  # cells across the body (even: the middle is a grid line)
     sleeve_columns: int = 2  # cells from an armhole out
     rows: int = 8  # cells up the body (even: mid-height)
 

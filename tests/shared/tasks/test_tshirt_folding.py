@@ -20,7 +20,7 @@ def test_thirty_two_states_eighty_transitions_and_plans_up_to_eight_moves():
     for s in states:
         assert TASK.parse_state(TASK.state_to_json(s)) == s
         assert TASK.array_to_state(TASK.state_to_array(s)) == s
-        for action, t in TASK.neighbours(s):
+        for _, t in TASK.neighbours(s):
             assert len(set(s) ^ set(t)) == 1
             assert TASK.apply(t, TASK.moves["unfold" if len(t) > len(s) else "fold",
                                             (set(s) ^ set(t)).pop()].action) == s  # fmt: skip
@@ -69,14 +69,14 @@ def test_a_click_within_tolerance_names_the_move_and_one_beyond_it_none():
     assert TASK.match(ClothAction(pick, release, 1)) is None  # height is part of the move
 
 
-def test_fold_lines_put_a_folded_sleeve_inside_its_strip_and_the_flaps_side_by_side():
+def test_fold_lines_keep_every_layer_on_its_own_side():
     c = TASK.config
     assert c.armhole - c.sleeve_length > c.side_line  # a folded sleeve lies inside the strip
     flap_edge = c.armhole - 2 * c.side_width  # a folded side's outer edge, now near the middle
     carried_tip = flap_edge - c.sleeve_length  # the tip of the unfolded sleeve it carries
-    assert 0 < flap_edge and carried_tip > -flap_edge  # it stops short of the other flap
-    with pytest.raises(ValueError, match="other side's flap"):
-        TshirtConfig(side_width=0.08, sleeve_length=0.06)
+    assert carried_tip > 0  # it stops short of the middle: of the other side's sleeve and flap
+    with pytest.raises(ValueError, match="must not reach the other side's"):
+        TshirtConfig(side_width=0.072, sleeve_length=0.055)
 
 
 def test_info_follows_the_interface():
