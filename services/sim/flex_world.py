@@ -9,6 +9,8 @@ cloth (`_carry`).
 
 from __future__ import annotations
 
+import hashlib
+import json
 from abc import abstractmethod
 from collections.abc import Sequence
 from pathlib import Path
@@ -92,8 +94,8 @@ class FlexWorld(World[Folds, ClothAction]):
         """(V, 2) vertex positions of the ideal cloth in `state`."""
 
     @abstractmethod
-    def scene_hash(self) -> str:
-        """sha256 of all that shapes a settled cloth (physics MJCF, recipe, moves, MuJoCo)."""
+    def _scene(self) -> tuple[str, dict[str, Any], dict[str, Any]]:
+        """(physics MJCF, motion recipe, the shape's parameters): what shapes a settled cloth."""
 
     @abstractmethod
     def reset_orders(self, state: Folds) -> list[tuple[ClothAction, ...]]:
@@ -173,14 +175,19 @@ class FlexWorld(World[Folds, ClothAction]):
         self.data.qacc_warmstart[:] = physics[nq + nv :]
         mujoco.mj_forward(self.model, self.data)
 
-    def _hash_document(self, mjcf: str, recipe: dict[str, Any]) -> dict[str, Any]:
-        return {
+    def scene_hash(self) -> str:
+        """sha256 of all that shapes a settled cloth: the physics MJCF, the motion recipe, the
+        moves and MuJoCo's version (rendering options and the image size do not count)."""
+        mjcf, recipe, shape = self._scene()
+        document = {
             "mujoco": mujoco.__version__,
             "physics": "qpos qvel qacc_warmstart",
             "mjcf": mjcf,
-            "recipe": recipe,
+            "recipe": {**recipe, "settle": [SETTLE_MIN_SECONDS, SETTLE_MAX_SECONDS, SETTLE_SPEED]},
             "moves": [[m.kind, m.fold, list(m.action)] for m in self.task.moves.values()],
+            **shape,
         }
+        return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
 
     # ----- reset, perturb, settle -----
     def reset(self, state: Folds, rng: np.random.Generator) -> Folds:

@@ -64,14 +64,6 @@ class ClothFolding(FoldingTask):
     def folds(self) -> tuple[str, ...]:
         return self.config.corners
 
-    @property
-    def frame(self) -> int:  # type: ignore[override]
-        return self.config.frame
-
-    @property
-    def tolerance(self) -> float:  # type: ignore[override]
-        return self.config.tolerance
-
     # ----- geometry of the moves, in continuous image coordinates (x = column, y = row) -----
     def point(self, corner: str, share: float) -> tuple[float, float]:
         """The point at `share` of the way from the cloth centre to `corner`."""

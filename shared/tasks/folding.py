@@ -51,8 +51,16 @@ class Move(NamedTuple):
 class FoldingTask(Task[Folds, ClothAction]):
     """States, codecs and move matching of a cloth whose states are sets of folds."""
 
-    frame: int = 256  # pixels of the action frame (square), whatever size the model works at
-    tolerance: float = 10.0  # pixels a click may land from a move's canonical point
+    config: Any  # has `frame` (pixels of the square action frame) and `tolerance` (pixels a
+    # click may land from a move's canonical point)
+
+    @property
+    def frame(self) -> int:
+        return self.config.frame
+
+    @property
+    def tolerance(self) -> float:
+        return self.config.tolerance
 
     @property
     @abstractmethod

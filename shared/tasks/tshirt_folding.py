@@ -83,14 +83,6 @@ class TshirtFolding(FoldingTask):
     def folds(self) -> tuple[str, ...]:
         return FOLDS
 
-    @property
-    def frame(self) -> int:  # type: ignore[override]
-        return self.config.frame
-
-    @property
-    def tolerance(self) -> float:  # type: ignore[override]
-        return self.config.tolerance
-
     def to_frame(self, x: float, y: float) -> tuple[float, float]:
         """Metres on the flat shirt -> continuous (col, row) of the action frame."""
         c = self.config

@@ -8,12 +8,11 @@ vertices, after a rigid alignment, with each state's ideal folded cloth.
 
 from __future__ import annotations
 
-import hashlib
 import itertools
-import json
 from collections.abc import Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,7 +24,7 @@ from services.sim.cloth_folding.scene import (
     cloth_texture,
     flat_mesh,
 )
-from services.sim.flex_world import SETTLE_MAX_SECONDS, SETTLE_MIN_SECONDS, SETTLE_SPEED, FlexWorld
+from services.sim.flex_world import FlexWorld
 from services.sim.rendering import mujoco
 from shared.tasks.base import InvalidActionError
 from shared.tasks.cloth_folding import CORNER_DIRECTIONS, ClothAction, ClothFolding, Folds, Pixel
@@ -76,19 +75,15 @@ class ClothFoldingWorld(FlexWorld):
             points[flap] -= 2 * beyond[flap, None] * normal
         return points
 
-    def scene_hash(self) -> str:
-        """sha256 of all that shapes a settled cloth: the physics MJCF, the motion recipe, the
-        moves and MuJoCo's version (rendering options and the image size do not count)."""
+    def _scene(self) -> tuple[str, dict[str, Any], dict[str, Any]]:
         recipe = {
             "carry_speed": CARRY_SPEED,
             "arc_height": ARC_HEIGHT,
             "place_clearance": PLACE_CLEARANCE,
             "hold": HOLD_SECONDS,
-            "settle": [SETTLE_MIN_SECONDS, SETTLE_MAX_SECONDS, SETTLE_SPEED],
         }
         mjcf = build_mjcf(self.task.config, self.geometry, 64)
-        document = {**self._hash_document(mjcf, recipe), "geometry": asdict(self.geometry)}
-        return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
+        return mjcf, recipe, {"geometry": asdict(self.geometry)}
 
     def reset_orders(self, state: Folds) -> list[tuple[ClothAction, ...]]:
         """Every order of folding the state's corners: resets draw one, as a person would."""

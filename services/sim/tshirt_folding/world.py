@@ -10,19 +10,15 @@ side strips, middle; top and bottom halves), so that a sleeve hidden in its side
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from services.sim.flex_world import (
-    SETTLE_MAX_SECONDS,
-    SETTLE_MIN_SECONDS,
-    SETTLE_SPEED,
     FlexWorld,
     far,
 )
@@ -122,20 +118,16 @@ class TshirtFoldingWorld(FlexWorld):
         return shares
 
     # ----- the settled-state library -----
-    def scene_hash(self) -> str:
-        """sha256 of all that shapes a settled shirt: the physics MJCF, the motion recipe, the
-        moves and MuJoCo's version (rendering options and the image size do not count)."""
+    def _scene(self) -> tuple[str, dict[str, Any], dict[str, Any]]:
         recipe = {
             "turn_speed": TURN_SPEED,
             "place_clearance": PLACE_CLEARANCE,
             "hold": HOLD_SECONDS,
             "crease_band": CREASE_BAND,
             "landing_slope": LANDING_SLOPE,
-            "settle": [SETTLE_MIN_SECONDS, SETTLE_MAX_SECONDS, SETTLE_SPEED],
         }
         mjcf = build_mjcf(self.task.config, self.mesh, 64, self._slots)
-        document = {**self._hash_document(mjcf, recipe), "mesh": asdict(self.mesh)}
-        return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
+        return mjcf, recipe, {"mesh": asdict(self.mesh)}
 
     def reset_orders(self, state: Folds) -> list[tuple[ClothAction, ...]]:
         """Every order of folding the state's folds that the rules allow: resets draw one."""
