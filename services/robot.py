@@ -17,6 +17,7 @@ import zenoh
 
 from services.sim.closed_loop import Episode, run_episode
 from services.sim.worlds import make_world
+from shared.appearance import task_default
 from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, encoder_image_size, robot_plan_key
 from shared.images import png_b64
 from shared.plans import VisualActionPlan
@@ -118,7 +119,9 @@ def run_robot(
         )
 
     try:
-        with make_world(task_name, encoder_image_size(session, task_name, timeout_s=5.0)) as world:
+        size = encoder_image_size(session, task_name, timeout_s=5.0)
+        # the simulated robot's camera looks as the task's data does by default
+        with make_world(task_name, size, appearance=task_default(task_name)) as world:
             return run_episode(
                 planner,
                 world,

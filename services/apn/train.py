@@ -21,7 +21,7 @@ from shared.dataset import load_dataset
 from shared.tasks import get_task
 from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
-from shared.training import minibatches
+from shared.training import minibatches, resolve_device
 
 FORMAT = "lsr-apn"
 VERSION = 1
@@ -43,6 +43,7 @@ class APNTrainConfig:
     samples: int = 1  # S: draws from q(z|I) added beside the means
     val_fraction: float = 0.2
     seed: int = 0
+    device: str = "auto"  # auto: a CUDA device when present, else the CPU
 
     def __post_init__(self) -> None:
         if not 0 < self.val_fraction < 1:
@@ -104,7 +105,9 @@ def train_apn(
 
     sizes = spec.action.counts
     head = cfg.head or ("classify" if max(sizes) <= HYBRID_MAX_CLASSES else "hybrid")
-    model = APN(APNConfig(latent_dim=mu1.shape[1], action_sizes=sizes, head=head))
+    device = resolve_device(cfg.device)
+    tr, va = tuple(t.to(device) for t in tr), tuple(t.to(device) for t in va)
+    model = APN(APNConfig(latent_dim=mu1.shape[1], action_sizes=sizes, head=head)).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -143,13 +146,13 @@ def train_apn(
         log.append(record)
         if val_loss < best["val_loss"]:
             best = record
-            best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     (out_dir / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
     meta = {
         "format": FORMAT,
         "version": VERSION,
         "model": model.config.to_dict(),
-        "train": asdict(cfg) | {"head": head, "total_steps": total},
+        "train": asdict(cfg) | {"head": head, "total_steps": total, "ran_on": str(device)},
         "vae": str(vae_dir),
         "dataset": str(data_dir),
         "task": spec.task,

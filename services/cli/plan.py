@@ -45,16 +45,19 @@ def cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
     from PIL import Image
 
+    from services.encoder.checkpoint import read_vae_config
     from services.planner.action_plans import ActionPlanner
     from services.planner.sheets import plan_sheet, spec_action_pixels
     from services.sim.worlds import make_world
+    from shared.appearance import trained_appearance
     from shared.tasks import has_simulator
 
     single_thread_torch()
     planner = ActionPlanner.from_model_dir(args.model)
     rng = np.random.default_rng(args.seed)
+    looks = trained_appearance(read_vae_config(Path(args.model) / "vae"))  # as the model saw
     opened = (
-        make_world(planner.task.name, planner.image_size)
+        make_world(planner.task.name, planner.image_size, appearance=looks)
         if has_simulator(planner.task.name)
         else _NoWorld(planner)
     )

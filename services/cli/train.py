@@ -46,6 +46,7 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         action_on=args.action_on,
         seed=args.seed,
         threads=args.threads,
+        device=args.device,
     )
     record = train_vae(args.data, args.out, cfg, extra_meta=meta)
     print(json.dumps(record))
@@ -78,6 +79,7 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
         epochs=args.epochs,
         samples=args.samples,
         seed=args.seed,
+        device=args.device,
     )
     meta = train_apn(args.vae, args.data, args.out, cfg)
     print(json.dumps({"best": meta["best"], "pairs": meta["pairs"], "seconds": meta["seconds"]}))
@@ -123,6 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     vae.add_argument("--seed", type=int, default=0)
     vae.add_argument("--threads", type=int, default=2)
+    vae.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     vae.set_defaults(handler=cmd_train_vae)
 
     reader = train.add_parser("reader", help="train the image -> state reader used by evals")
@@ -155,4 +158,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     apn.add_argument("--samples", type=int, default=1, help="S draws from q(z|I) per pair")
     apn.add_argument("--seed", type=int, default=0)
+    apn.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     apn.set_defaults(handler=cmd_train_apn)

@@ -50,11 +50,13 @@ def encode_images(
 ) -> tuple[np.ndarray, np.ndarray]:
     """uint8 (N, H, W, 3) -> encoder means and log-variances, float32 (N, latent_dim)."""
     mus, logvars = [], []
+    device = next(model.parameters()).device
     for start in range(0, len(images), batch_size):
         x = to_tensor(torch.from_numpy(np.ascontiguousarray(images[start : start + batch_size])))
-        mu, logvar = model.encode(x.contiguous(memory_format=torch.channels_last))
-        mus.append(mu.numpy())
-        logvars.append(logvar.numpy())
+        x = x.to(device).contiguous(memory_format=torch.channels_last)
+        mu, logvar = model.encode(x)
+        mus.append(mu.cpu().numpy())
+        logvars.append(logvar.cpu().numpy())
     return np.concatenate(mus), np.concatenate(logvars)
 
 

@@ -76,9 +76,17 @@ class FoldingTask(Task[Folds, ClothAction]):
         """A few letters for labels under small pictures: the initials of the name's words."""
         return "".join(w[0].upper() for w in fold.split("_"))
 
+    def locks(self) -> dict[str, tuple[str, ...]]:
+        """For each fold, the folds that hold it in place while they are folded: its moves wait
+        for them. Tasks whose moves wait for others override it; the viewer reads it too."""
+        return {fold: () for fold in self.folds}
+
     def refusal(self, state: Folds, move: Move) -> str | None:
         """Why `move` may not be made in `state` (beyond folding the folded or unfolding the
-        flat), or None; tasks whose moves wait for others override it."""
+        flat), or None."""
+        held = [fold for fold in self.locks()[move.fold] if fold in state]
+        if held:
+            return f"{move.fold!r} cannot {move.kind} while {held[0]!r} is folded over it"
         return None
 
     def match(self, action: ClothAction) -> Move | None:
@@ -123,6 +131,7 @@ class FoldingTask(Task[Folds, ClothAction]):
         return {
             "task": self.name,
             "folds": list(self.folds),
+            "locked_by": {fold: list(held) for fold, held in self.locks().items()},
             "num_states": len(self.all_states()),
             "num_transitions": sum(len(self.legal_actions(s)) for s in self.all_states()),
             "image_frame": f,

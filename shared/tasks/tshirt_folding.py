@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.tasks.folding import ClothAction, FoldingTask, Folds, Move, Pixel
+from shared.tasks.folding import ClothAction, FoldingTask, Move, Pixel
 
 FOLDS = ("left_sleeve", "right_sleeve", "left_side", "right_side", "bottom_half")
 SHORT = {"left_sleeve": "a", "right_sleeve": "b", "left_side": "L", "right_side": "R"}
@@ -138,13 +138,10 @@ class TshirtFolding(FoldingTask):
     def short_name(self, fold: str) -> str:
         return SHORT[fold]
 
-    def refusal(self, state: Folds, move: Move) -> str | None:
-        if move.fold != "bottom_half" and "bottom_half" in state:
-            return f"{move.fold!r} cannot {move.kind} while the bottom half is folded over it"
-        side = SIDE_OF.get(move.fold)
-        if side is not None and side in state:
-            return f"{move.fold!r} cannot {move.kind} while {side!r} is folded over it"
-        return None
+    def locks(self) -> dict[str, tuple[str, ...]]:
+        sleeves = {sleeve: ("bottom_half", side) for sleeve, side in SIDE_OF.items()}
+        sides = {side: ("bottom_half",) for side in SIDE_OF.values()}
+        return {"bottom_half": ()} | sides | sleeves
 
     def info(self) -> dict[str, Any]:
         c = self.config

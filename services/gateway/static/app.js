@@ -299,10 +299,15 @@ function columnPressed(end, c) {
 
 function drawFolds(end) {
   const box = el("fieldset", { class: "folds" },
-    el("legend", { text: "Folded corners" }));
+    el("legend", { text: ui.info.task === "cloth_folding" ? "Folded corners" : "Folds" }));
+  const lockedBy = ui.info.locked_by || {};
   for (const fold of ui.info.folds) {
+    // A fold whose move the rules forbid now (something folded over it) cannot be toggled.
+    const held = (lockedBy[fold] || []).filter((f) => end.state.folds.includes(f));
     const input = el("input", { type: "checkbox", id: `${end.name}-fold-${fold}`, value: fold,
       checked: end.state.folds.includes(fold) ? "checked" : null,
+      disabled: held.length ? "disabled" : null,
+      title: held.length ? `unfold ${held.join(" and ").replaceAll("_", " ")} first` : null,
       onchange: (e) => {
         end.state.folds = ui.info.folds.filter((f) =>
           f === fold ? e.target.checked : end.state.folds.includes(f));

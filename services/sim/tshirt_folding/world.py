@@ -33,7 +33,7 @@ from shared.tasks.base import InvalidActionError
 from shared.tasks.folding import ClothAction, Folds
 from shared.tasks.tshirt_folding import FOLDS, TshirtFolding
 
-TURN_SPEED = 0.6  # m/s of the flap's far edge along its half circle
+TURN_SPEED = 0.3  # m/s of the flap's far edge along its half circle
 PLACE_CLEARANCE = 2.5  # radii between the turned flap and whatever lies under it
 HOLD_SECONDS = 0.1
 LANDING_SLOPE = 0.25  # m a metre: how steeply a turned flap's landing heights may change

@@ -42,8 +42,19 @@ def test_the_rules_of_the_issue():
     fold = TASK.moves["fold", "left_sleeve"].action
     with pytest.raises(IllegalActionError, match="'left_sleeve' cannot fold while 'left_side'"):
         TASK.apply(side, fold)
-    with pytest.raises(IllegalActionError, match="while the bottom half is folded"):
+    with pytest.raises(IllegalActionError, match="while 'bottom_half' is folded"):
         TASK.apply(("left_sleeve", "bottom_half"), TASK.moves["unfold", "left_sleeve"].action)
+
+
+def test_the_viewer_is_told_which_folds_hold_each_fold_in_place():
+    """info()['locked_by'] is what the viewer disables checkboxes by: it must say exactly
+    which moves the rules allow, in every state."""
+    locked_by = json.loads(json.dumps(TASK.info()))["locked_by"]
+    assert locked_by["bottom_half"] == []
+    assert locked_by["left_sleeve"] == ["bottom_half", "left_side"]
+    for state in TASK.all_states():
+        legal = {TASK.match(a).fold for a in TASK.legal_actions(state)}
+        assert legal == {f for f in FOLDS if not set(locked_by[f]) & set(state)}, state
 
 
 def test_moves_are_told_apart_by_more_than_twice_the_tolerance():

@@ -1,6 +1,6 @@
-"""Markdown tables for models/cloth_folding/REPORT.md from what benchmarks/cloth_tables.sh wrote.
+"""Markdown tables for models/cloth_folding/REPORT.md from what benchmarks/folding_tables.sh wrote.
 
-Usage: python benchmarks/cloth_report.py [runs/cloth]. Prints Table I (VFM), Table II (APN,
+Usage: python benchmarks/folding_report.py [runs/cloth]. Prints Table I (VFM), Table II (APN,
 mean and standard deviation over the seeds) and Table III (closed loop) for every VAE found,
 beside the paper's figures.
 """
