@@ -1,8 +1,9 @@
-"""Markdown tables for models/cloth_folding/REPORT.md from what benchmarks/folding_tables.sh wrote.
+"""Markdown tables for a folding task's REPORT.md from what benchmarks/folding_tables.sh wrote.
 
 Usage: python benchmarks/folding_report.py [runs/cloth]. Prints Table I (VFM), Table II (APN,
 mean and standard deviation over the seeds) and Table III (closed loop) for every VAE found,
-beside the paper's figures.
+beside the paper's figures (its Tables II and III are its T-shirt study), once per test
+appearance found: the test data's own and, where evaluated, `shifted` (files ending _shifted).
 """
 
 from __future__ import annotations
@@ -31,12 +32,19 @@ def read(path: Path) -> dict | None:
 
 def main(root: Path) -> None:
     runs = [(m, root / f"vae_{m}") for m in NAMES if (root / f"vae_{m}").is_dir()]
+    for suffix in ("", "_shifted"):
+        if suffix == "" or any((run / f"table1{suffix}.json").is_file() for _, run in runs):
+            print(f"## Test data: {'shifted appearance' if suffix else 'as trained'}\n")
+            tables(runs, suffix)
+
+
+def tables(runs: list[tuple[str, Path]], suffix: str) -> None:
     print("Table I: 1000 start/goal pairs of unseen test images\n")
     print("| model | nodes / edges | purity | All | Any | Trans | decoded read as claimed "
           "| classes separated | min inter - max intra |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for metric, run in runs:
-        t = read(run / "table1.json")
+        t = read(run / f"table1{suffix}.json")
         if t:
             print(
                 f"| VAE-{NAMES[metric]} | {t['nodes']} / {t['edges']} | "
@@ -50,7 +58,7 @@ def main(root: Path) -> None:
           "total | pick px (mean) | release px (mean) | same move |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for metric, run in runs:
-        evals = [read(p) for p in sorted(run.glob("apn_s*/eval.json"))]
+        evals = [read(p) for p in sorted(run.glob(f"apn_s*/eval{suffix}.json"))]
         evals = [e for e in evals if e]
         if not evals:
             continue
@@ -72,7 +80,7 @@ def main(root: Path) -> None:
     print("| framework | tasks | system | transitions | VFM | APN | paper (5 goals x 5 runs) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for metric, run in runs:
-        t = read(run / "table3.json")
+        t = read(run / f"table3{suffix}.json")
         if t and "table3" in t:
             r = t["table3"]
             paper = " / ".join(str(v) for v in PAPER_TABLE3.get(metric, ())) or "-"
@@ -80,6 +88,7 @@ def main(root: Path) -> None:
                 f"| F-{NAMES[metric]} | {t['pairs']} | {r['system']:.1f} | "
                 f"{r['transitions']:.1f} | {r['vfm']:.1f} | {r['apn']:.1f} | {paper} |"
             )
+    print()
 
 
 if __name__ == "__main__":
