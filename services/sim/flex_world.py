@@ -290,9 +290,16 @@ class FlexWorld(World[Folds, ClothAction]):
         return {s: float(far(points, ref).mean()) for s, ref in self._references.items()}
 
     # ----- acting -----
+    # Whether each move starts from the settled cloth of the state read back (at a fresh pose
+    # within the reset noise), as a folding robot smooths the garment before it folds: layered
+    # flaps drift over a walk of moves until a later move fails (see the T-shirt world).
+    flatten_before_moves = False
+
     def execute(self, action: ClothAction, rng: np.random.Generator) -> Folds:
         state = self.read_state()
         self.task.check_action(state, action)  # raises before anything moves
+        if self.flatten_before_moves and self.reset(state, rng) != state:
+            raise WorldError(f"the smoothed cloth no longer reads as {state}")
         try:
             self._carry(action)
         except InvalidActionError as exc:  # a legal move, but the cloth is not where it expects
