@@ -7,8 +7,11 @@ LSR=.venv/bin/lsr
 DATA=data/box_stacking
 RUNS=runs
 
-[ -f $DATA/train/manifest.json ] || $LSR data generate --pairs 5000 --seed 0 --size 64 --out $DATA/train
-[ -f $DATA/test/manifest.json ] || $LSR data generate --pairs 1250 --seed 1 --size 64 --out $DATA/test
+# --starts random: the shipped model's data, made before balanced starts became the default
+[ -f $DATA/train/manifest.json ] || $LSR data generate --pairs 5000 --seed 0 --size 64 \
+  --starts random --out $DATA/train
+[ -f $DATA/test/manifest.json ] || $LSR data generate --pairs 1250 --seed 1 --size 64 \
+  --starts random --out $DATA/test
 [ -f $RUNS/state_reader/config.json ] || \
   $LSR train reader --data $DATA/train --test $DATA/test --out $RUNS/state_reader
 
