@@ -1,7 +1,6 @@
 """End to end: the real router, services and gateway as processes on free loopback ports.
 
-The stack serves the three shipped models (box stacking, cloth and T-shirt folding), four
-services each.
+The stack serves both shipped models (box stacking and cloth folding), four services each.
 Tests run in file order; the ones that stop or kill processes come last.
 """
 
@@ -38,15 +37,12 @@ from shared.zenoh_access import write_deployment
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
 CLOTH_MODEL = MODEL.parent / "cloth_folding"
-TSHIRT_MODEL = MODEL.parent / "tshirt_folding"
 TASK = get_task("box_stacking")
 CLOTH = get_task("cloth_folding")
 CLOTH_START = {"folds": ["top_left", "bottom_right"]}
 CLOTH_GOAL = {"folds": ["top_right", "bottom_right"]}
 CLOTH_GOOD = {"task": "cloth_folding", "start": {"state": CLOTH_START},
               "goal": {"state": CLOTH_GOAL}}  # fmt: skip
-TSHIRT = get_task("tshirt_folding")
-TASKS = ["box_stacking", "cloth_folding", "tshirt_folding"]
 START = {"stacks": [["red", "green"], ["blue"], ["yellow"]]}
 GOAL = {"stacks": [[], ["yellow", "green", "red"], ["blue"]]}
 GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOAL}}
@@ -70,7 +66,7 @@ def stack(tmp_path_factory, access):
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
-        models=(MODEL, CLOTH_MODEL, TSHIRT_MODEL),
+        models=(MODEL, CLOTH_MODEL),
         log_dir=tmp_path_factory.mktemp("stack-logs"),
         zenoh_access=access,
     )
@@ -126,8 +122,8 @@ def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
     assert set(services) == {"encoder", "planner", "apn", "sim"}
     for service in services.values():  # one instance per task
         assert service["status"] == "ok"
-        assert sorted(i["task"] for i in service["instances"]) == TASKS
-    assert http.get("/tasks").json() == {"tasks": TASKS}
+        assert sorted(i["task"] for i in service["instances"]) == ["box_stacking", "cloth_folding"]
+    assert http.get("/tasks").json() == {"tasks": ["box_stacking", "cloth_folding"]}
     tokens = {str(r.ok.key_expr).split("/")[2] for r in bus.liveliness().get("lsr/alive/**")}
     assert tokens == {"encoder", "planner", "apn", "sim", "gateway"}
     assert http.get("/tasks/box_stacking").json()["num_states"] == 288
@@ -219,34 +215,6 @@ def test_cloth_execute_reaches_its_goal(http):
     assert all(set(step["action"]) == {"pick", "release", "height"} for step in body["steps"])
 
 
-def test_tshirt_plans_from_camera_images_fold_move_by_move(http):
-    """Five moves with a sleeve to unfold before its side folds, from camera-like renders."""
-    start = {"folds": ["left_sleeve", "right_side"]}
-    goal = {"folds": ["right_sleeve", "left_side", "bottom_half"]}
-    images = [
-        http.post("/render", json={"task": "tshirt_folding", "state": s, "seed": 9}).json()
-        for s in (start, goal)
-    ]
-    body = {"task": "tshirt_folding", "start": {"image": images[0]["image"]},
-            "goal": {"image": images[1]["image"]}, "max_plans": 8}  # fmt: skip
-    reply = http.post("/plan", json=body)
-    assert reply.status_code == 200, reply.text
-    assert_plans_lead_from(start, goal, reply.json(), task=TSHIRT)
-    assert {len(p["actions"]) for p in reply.json()["plans"]} == {5}
-
-
-def test_tshirt_execute_reaches_its_goal(http):
-    body = {"task": "tshirt_folding", "start": {"state": {"folds": ["right_sleeve"]}},
-            "goal": {"state": {"folds": ["left_sleeve"]}}, "seed": 3}  # fmt: skip
-    reply = http.post("/execute", json=body, timeout=180)  # physics: no deadline of the test's
-    assert reply.status_code == 200, reply.text
-    result = reply.json()
-    assert result["success"] and TSHIRT.parse_state(result["final_state"]) == TSHIRT.parse_state(
-        body["goal"]["state"]
-    )
-    assert len(result["steps"]) == 2  # unfold the right sleeve, fold the left (either order)
-
-
 @pytest.mark.parametrize(
     ("body", "field", "message"),
     [
@@ -254,13 +222,9 @@ def test_tshirt_execute_reaches_its_goal(http):
          "appears twice"),
         ({**CLOTH_GOOD, "goal": {"state": {"folds": ["middle"]}}}, "goal", "unknown fold"),
         ({**CLOTH_GOOD, "start": {"state": START}}, "start", "'folds'"),
-        ({**CLOTH_GOOD, "task": "tshirt_folding", "goal": {"state": {"folds": ["collar"]}}},
-         "goal", "unknown fold"),
-        ({**CLOTH_GOOD, "task": "tshirt_folding", "start": {"state": {"folds": ["top_left"]}}},
-         "start", "unknown fold"),
     ],
 )  # fmt: skip
-def test_invalid_folding_states_name_their_field(http, body, field, message):
+def test_invalid_cloth_states_name_their_field(http, body, field, message):
     reply = http.post("/plan", json=body)
     assert reply.status_code == 422, reply.text
     assert field in reply.text and message in reply.text
