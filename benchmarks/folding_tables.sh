@@ -21,7 +21,7 @@ case $TASK in
 esac
 PAIRS=${PAIRS:-200}
 # cloth keeps its clean renders; the T-shirt is also tested on doubled appearance ranges
-SHIFTED=$([ "$TASK" = cloth_folding ] && echo "" || echo shifted)
+SHIFTED=$([ "$TASK" = cloth_folding ] && echo "" || echo test_shifted)
 
 [ -f $DATA/train/manifest.json ] || $LSR data generate --task $TASK --pairs $TUPLES \
   --seed 0 --size 64 --out $DATA/train
@@ -46,7 +46,7 @@ for metric in "${metrics[@]}"; do
   $LSR build-roadmap --vae $run/vae --data $DATA/train --w-eps $w --min-samples 6 \
     --eps-rule paper --out $run/roadmap | tail -n 1 > $run/roadmap.json
   for test in test $SHIFTED; do
-    suffix=${test#test}  # "" or _shifted
+    suffix=${test#test}  # "" or _shifted (test_shifted)
     $LSR eval vfm --model $run --test $DATA/$test --pairs 1000 --seed 0 \
       --reader $RUNS/state_reader --figure $run/class_distances$suffix.png --json | tail -n 1 \
       > $run/table1$suffix.json

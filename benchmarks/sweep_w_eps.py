@@ -1,7 +1,9 @@
 """How the roadmap depends on w_eps: nodes, edges, purity and Table I figures per value.
 
 Usage: python benchmarks/sweep_w_eps.py --vae models/box_stacking/vae \
-           --train data/box_stacking/train --test data/box_stacking/test [--w 0 0.5 1 2 3]
+           --train data/box_stacking/train --test data/box_stacking/test [--w 0 0.5 1 2 3] \
+           [--eps-rule paper|stable]
+Choose with a validation set (another seed), not the test set the model is reported on.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ def main() -> None:
     parser.add_argument("--w", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0, 3.0])
     parser.add_argument("--min-samples", type=int, default=3)
     parser.add_argument("--pairs", type=int, default=1000)
+    parser.add_argument("--eps-rule", default="paper", choices=["paper", "stable"])
     args = parser.parse_args()
 
     model, config = load_vae(args.vae)
@@ -34,10 +37,13 @@ def main() -> None:
     test_states = interleave(test.state1, test.state2)
     pairs = sample_test_pairs(len(z_test), args.pairs, seed=0)
     point_states = interleave(train.state1, train.state2)
-    print(f"metric {metric}, min_samples {args.min_samples}, {args.pairs} test pairs")
+    print(
+        f"metric {metric}, min_samples {args.min_samples}, eps rule {args.eps_rule}, "
+        f"{args.pairs} test pairs"
+    )
     print("w_eps  epsilon  regions  nodes  edges  purity   all    any    trans")
     for w in args.w:
-        config = RoadmapConfig(metric, w, args.min_samples, eps_rule="paper")
+        config = RoadmapConfig(metric, w, args.min_samples, eps_rule=args.eps_rule)
         roadmap = build_roadmap(mu1, mu2, train.a, config)
         labels = label_nodes(roadmap.point_node, point_states, roadmap.num_nodes)
         r = evaluate_plans(train.task, roadmap, labels, z_test, test_states, pairs, 1000)
