@@ -52,7 +52,9 @@ def test_the_threshold_is_a_factor_over_what_training_images_reach(chain):
 def test_an_image_far_from_every_region_is_not_known_and_names_its_node(chain):
     roadmap, latents, centres = chain
     calibration = calibrate(roadmap, latents)
-    near, between = match(roadmap, calibration, np.stack([centres[2], (centres[0] + centres[1]) / 2]))
+    near, between = match(
+        roadmap, calibration, np.stack([centres[2], (centres[0] + centres[1]) / 2])
+    )
     assert near.known and near.score < 1
     assert not between.known and between.score > 10 and between.node in (0, 1)
     with pytest.raises(UnknownImageError) as refused:
