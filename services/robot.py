@@ -20,7 +20,7 @@ from services.sim.worlds import make_world
 from shared.appearance import task_default
 from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, encoder_image_size, robot_plan_key
 from shared.images import png_b64
-from shared.plans import VisualActionPlan
+from shared.plans import Match, UnknownImageError, VisualActionPlan, refused_end
 from shared.tasks import get_task
 
 
@@ -54,6 +54,11 @@ class RobotPlanner:
         }
         plan_id = self._request(body)
         published = self._published(plan_id)
+        if published.get("match"):
+            match = {end: Match.from_json(m) for end, m in published["match"].items()}
+            end = refused_end(match)
+            if end is not None:
+                raise UnknownImageError(end, published.get("reason") or end, match)
         return [
             VisualActionPlan(
                 nodes=p["nodes"],

@@ -33,7 +33,7 @@ from shared.messages import (
     RunRequest,
     WireArray,
 )
-from shared.plans import VisualActionPlan
+from shared.plans import Match, UnknownImageError, VisualActionPlan, refused_end
 from shared.tasks import get_task
 
 
@@ -41,6 +41,7 @@ class PlanOutcome(NamedTuple):
     plans: list[VisualActionPlan]
     reason: str | None  # why there are no plans
     timings: list[CallTiming]  # the service calls it took, in order
+    match: dict[str, Match] | None = None  # how well the model knows each end
 
 
 class PlanningClient:
@@ -116,8 +117,11 @@ class PlanningClient:
         searching = self._call("planner", "paths", search, PathsReply, deadline)
         found: PathsReply = searching.result()
         calls = [encoding, searching]
+        match = None
+        if found.match is not None:
+            match = {end: Match.from_json(m) for end, m in found.match.items()}
         if not found.paths:
-            return PlanOutcome([], found.reason, timings(calls))
+            return PlanOutcome([], found.reason, timings(calls), match)
         node_latents = found.node_latents.numpy()
         latents = dict(zip(found.node_ids, node_latents, strict=True))
         steps = list(dict.fromkeys((a, b) for p in found.paths for a, b in itertools.pairwise(p)))
@@ -177,13 +181,18 @@ class PlanningClient:
                 )
             )
         reason = None if plans else "the APN proposed no action for a step of every path"
-        return PlanOutcome(plans, reason, timings(calls))
+        return PlanOutcome(plans, reason, timings(calls), match)
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, include_images: bool = False
     ) -> list[VisualActionPlan]:
-        """The closed loop's Planner protocol: plans only, no decoded images unless asked."""
-        return self.plan_with_reason(start, goal, max_plans, include_images).plans
+        """The closed loop's Planner protocol: plans only, no decoded images unless asked;
+        UnknownImageError when the planner refused an end."""
+        outcome = self.plan_with_reason(start, goal, max_plans, include_images)
+        end = None if outcome.match is None else refused_end(outcome.match)
+        if end is not None and outcome.match is not None:
+            raise UnknownImageError(end, outcome.reason or f"the {end} is not known", outcome.match)
+        return outcome.plans
 
     def run(self, request: RunRequest, deadline_s: float) -> RunReply:
         """A closed-loop episode in a sim instance; it plans through this same network."""

@@ -102,6 +102,8 @@ class PathsReply(Message):
     node_latents: WireArray  # float32 (len(node_ids), D)
     model_id: str  # the planner's model: callers may keep node images decoded for it
     reason: str | None = None  # why `paths` is empty
+    # {"start": {"known", "score", "node"}, "goal": {...}}: how well the model knows each end
+    match: dict[str, dict[str, Any]] | None = None
 
 
 class GraphRequest(TaskMessage):
@@ -182,6 +184,7 @@ class PixelsReply(Message):
 class RunReply(Message):
     success: bool
     reason: str
+    detail: str | None = None  # the planner's words where it refused the scene
     final_state: Any
     actions: list[dict[str, Any]]
     images: WireArray  # uint8 (steps, H, W, 3): observed after each action

@@ -25,6 +25,38 @@ class VisualActionPlan:
         }
 
 
+@dataclass(frozen=True)
+class Match:
+    """How one image relates to the roadmap: `score` is its distance to the nearest node over
+    the model's calibrated threshold, so an image is known while it is at most 1."""
+
+    known: bool
+    score: float
+    node: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {"known": self.known, "score": round(self.score, 4), "node": self.node}
+
+    @classmethod
+    def from_json(cls, document: dict[str, Any]) -> Match:
+        return cls(bool(document["known"]), float(document["score"]), int(document["node"]))
+
+
+class UnknownImageError(Exception):
+    """A planner refused to plan: `end` ("start" or "goal") is unlike what its model knows."""
+
+    def __init__(self, end: str, reason: str, match: dict[str, Match]) -> None:
+        super().__init__(reason)
+        self.end = end
+        self.reason = reason
+        self.match = match
+
+
+def refused_end(match: dict[str, Match]) -> str | None:
+    """The first end that is not known, or None when both are."""
+    return next((end for end in ("start", "goal") if not match[end].known), None)
+
+
 def most_confident(plans: list[VisualActionPlan]) -> VisualActionPlan:
     """The plan whose first action the APN is surest of; the first plan on ties."""
     return max(plans, key=lambda p: p.confidences[0] if p.confidences else 1.0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from services.cli.common import json_arg, single_thread_torch
 
@@ -50,6 +51,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from services.planner.sheets import plan_sheet, spec_action_pixels
     from services.sim.worlds import make_world
     from shared.appearance import trained_appearance
+    from shared.plans import UnknownImageError
     from shared.tasks import has_simulator
 
     single_thread_torch()
@@ -68,7 +70,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
         goal, _ = _image_or_state(
             planner.task, world, args.goal_image, args.goal_state, rng, "goal"
         )
-        plans = planner.plan(start, goal, max_plans=args.max_plans)
+        z = planner.planner.encode(np.stack([start, goal]))
+        matched = planner.planner.match(z[0], z[1])
+        reason = None
+        try:
+            plans = planner.plan_latent(z[0], z[1], max_plans=args.max_plans)
+        except UnknownImageError as refused:
+            plans, reason = [], refused.reason
         args.out.mkdir(parents=True, exist_ok=True)
         for k, plan in enumerate(plans):
             if world.task is None:  # a task defined by its data: its spec says where
@@ -83,10 +91,14 @@ def cmd_plan(args: argparse.Namespace) -> int:
                     plan, world.action_pixels, arrows=bool(world.task.spec.action.pixels)
                 )
             Image.fromarray(sheet).save(args.out / f"plan_{k}.png")
-    summary = {"plans": [p.to_json(planner.task) for p in plans]}
+    summary: dict[str, Any] = {"plans": [p.to_json(planner.task) for p in plans]}
+    if matched is not None:
+        summary["match"] = {end: found.to_json() for end, found in matched.items()}
     if not plans:
-        summary["reason"] = "start and goal are not connected in the roadmap"
+        summary["reason"] = reason or "start and goal are not connected in the roadmap"
     (args.out / "plans.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if reason is not None:
+        print(f"no plan: {reason}")
     print(f"{len(plans)} plan(s) written to {args.out}")
     return 0
 

@@ -1,4 +1,4 @@
-"""`lsr build-roadmap`: the Latent Space Roadmap of a trained VAE."""
+"""`lsr build-roadmap` and `lsr calibrate`: a trained VAE's roadmap and what it knows."""
 
 from __future__ import annotations
 
@@ -31,6 +31,13 @@ def cmd_build_roadmap(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from services.planner.build import calibrate_model
+
+    print(json.dumps(calibrate_model(args.model, args.data)))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     roadmap = sub.add_parser("build-roadmap", help="build the Latent Space Roadmap of a VAE")
     roadmap.add_argument("--vae", required=True, type=Path)
@@ -60,3 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     roadmap.add_argument("--out", required=True, type=Path)
     roadmap.set_defaults(handler=cmd_build_roadmap)
+
+    calibrate = sub.add_parser(
+        "calibrate",
+        help="set how far from the roadmap an image may lie and still be known (build-roadmap "
+        "does it; this is for models built before)",
+    )
+    calibrate.add_argument("--model", required=True, type=Path, help="vae/ and roadmap/ folder")
+    calibrate.add_argument("--data", required=True, type=Path, help="the model's training data")
+    calibrate.set_defaults(handler=cmd_calibrate)

@@ -183,6 +183,9 @@ class Gateway:
                 for plan in outcome.plans
             ],
             reason=outcome.reason,
+            match=None
+            if outcome.match is None
+            else {end: found.to_json() for end, found in outcome.match.items()},
         )
         if request.robot_id is not None:
             self.session.put(
@@ -231,6 +234,7 @@ class Gateway:
         return ExecuteResponse(
             success=reply.success,
             reason=reply.reason,
+            detail=reply.detail,
             final_state=reply.final_state,
             steps=[
                 ExecuteStep(action=action, image=png_b64(image))

@@ -80,10 +80,27 @@ class Plan(BaseModel):
     confidences: list[float] = Field(description="the APN's confidence in each action")
 
 
+class EndMatch(BaseModel):
+    known: bool
+    score: float = Field(
+        description="distance of the image's latent to the nearest roadmap node over the "
+        "model's calibrated threshold: known while at most 1"
+    )
+    node: int | None = Field(description="the nearest roadmap node")
+
+
+class PlanMatch(BaseModel):
+    start: EndMatch
+    goal: EndMatch
+
+
 class PlanResponse(BaseModel):
     plan_id: str
     plans: list[Plan]
     reason: str | None = Field(None, description="why there is no plan, when plans is empty")
+    match: PlanMatch | None = Field(
+        None, description="how well the model knows each end; an end not known gets no plan"
+    )
 
 
 class RenderRequest(TaskRequest, AppearanceRequest):
@@ -110,7 +127,11 @@ class ExecuteStep(BaseModel):
 
 class ExecuteResponse(BaseModel):
     success: bool
-    reason: str
+    reason: str = Field(
+        description="goal, or why the run stopped: unknown_start (a scene the model does not "
+        "know: nothing was done from it), unknown_goal, unreachable, max_steps, physics: ..."
+    )
+    detail: str | None = Field(None, description="the planner's words, where it refused")
     final_state: dict[str, Any] | None = Field(
         description="the simulator's state at the end; null when it reads as no valid state"
     )

@@ -251,6 +251,7 @@ class Viewer:
                     outcome = {
                         "success": reply.success,
                         "reason": reply.reason,
+                        "detail": reply.detail,
                         "final_state": reply.final_state,
                         "steps": len(reply.actions),
                     }

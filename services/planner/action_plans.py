@@ -12,6 +12,7 @@ from services.apn.train import load_apn, propose
 from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.build import load_labels
 from services.planner.evaluate import action_leads
+from services.planner.knowing import load_calibration
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
 from services.runtime import declare_model_task
@@ -35,8 +36,10 @@ class ActionPlanner:
         vae, config = load_vae(model_dir / "vae")
         apn, _ = load_apn(model_dir / "apn")
         roadmap = Roadmap.load(model_dir / "roadmap")
+        calibration = load_calibration(model_dir / "roadmap", roadmap)
         declare_model_task(config)
-        return cls(get_task(config["dataset"]["task"]), VisualPlanner(vae, roadmap), apn)
+        planner = VisualPlanner(vae, roadmap, calibration)
+        return cls(get_task(config["dataset"]["task"]), planner, apn)
 
     @property
     def image_size(self) -> int:
@@ -48,7 +51,8 @@ class ActionPlanner:
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8
     ) -> list[VisualActionPlan]:
-        """Plans from a start image to a goal image, in the roadmap's deterministic order."""
+        """Plans from a start image to a goal image, in the roadmap's deterministic order;
+        UnknownImageError when an end is unlike anything the model knows."""
         z = self.planner.encode(np.stack([start, goal]))
         return self.plan_latent(z[0], z[1], max_plans)
 

@@ -9,9 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from services.encoder.checkpoint import encode_images, load_vae
+from services.encoder.checkpoint import encode_images, load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
-from services.planner.roadmap import Roadmap, RoadmapConfig, build_roadmap
+from services.planner.knowing import FILE as MATCH_FILE
+from services.planner.knowing import calibrate, save_calibration
+from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapConfig, build_roadmap
+from shared.checkpoint import seal
 from shared.dataset import Dataset, load_dataset
 from shared.tasks import get_task
 
@@ -49,6 +52,9 @@ def build_from_dataset(
     roadmap = build_roadmap(mu1, mu2, data.a, config)
     built = time.perf_counter()
     roadmap.save(out_dir)
+    calibration = calibrate(roadmap, np.concatenate([mu1, mu2]))
+    save_calibration(calibration, out_dir)
+    seal(out_dir, [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
     purity: dict[str, Any] = {}
     if data.spec.state is not None:  # node labels need the states the data declares
         labels = label_nodes(
@@ -64,10 +70,25 @@ def build_from_dataset(
         "edges": len(roadmap.edges),
         "epsilon": roadmap.epsilon,
         **purity,
+        "match_threshold": calibration.threshold,
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,
         **{k: v for k, v in roadmap.stats.items() if not isinstance(v, dict)},
     }
+
+
+def calibrate_model(model_dir: Path | str, data_dir: Path | str) -> dict[str, Any]:
+    """Calibrate (or re-calibrate) a model's roadmap on its training data: `lsr calibrate`."""
+    model_dir = Path(model_dir)
+    data = load_dataset(data_dir)
+    task = read_vae_config(model_dir / "vae")["dataset"]["task"]
+    if data.task != task:
+        raise ValueError(f"{data_dir} holds {data.task!r} data, the model plans {task!r}")
+    roadmap = Roadmap.load(model_dir / "roadmap")
+    calibration = calibrate(roadmap, np.concatenate(encode_pairs(model_dir / "vae", data)))
+    save_calibration(calibration, model_dir / "roadmap")
+    seal(model_dir / "roadmap", [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
+    return calibration.to_json()
 
 
 def load_labels(roadmap_dir: Path | str, task_name: str) -> NodeLabels:

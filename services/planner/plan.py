@@ -11,7 +11,10 @@ import numpy as np
 
 from services.encoder.checkpoint import decode_latents, encode_images
 from services.encoder.model import VAE
+from services.planner import knowing
+from services.planner.knowing import Calibration
 from services.planner.roadmap import Roadmap
+from shared.plans import Match
 
 
 @dataclass(frozen=True)
@@ -21,11 +24,16 @@ class LatentPlan:
 
 
 class VisualPlanner:
-    """Plans between images; each node is decoded at most once, then served from the cache."""
+    """Plans between images; each node is decoded at most once, then served from the cache.
 
-    def __init__(self, vae: VAE, roadmap: Roadmap) -> None:
+    With a calibration it refuses (UnknownImageError) an end unlike anything the model knows;
+    without one (unit tests of the search alone) every image counts as known.
+    """
+
+    def __init__(self, vae: VAE, roadmap: Roadmap, calibration: Calibration | None = None) -> None:
         self.vae = vae
         self.roadmap = roadmap
+        self.calibration = calibration
         self._images: dict[int, np.ndarray] = {}
 
     def encode(self, images: np.ndarray) -> np.ndarray:
@@ -38,9 +46,19 @@ class VisualPlanner:
             )
         return encode_images(self.vae, images)[0]
 
+    def match(self, z_start: np.ndarray, z_goal: np.ndarray) -> dict[str, Match] | None:
+        """How well the model knows each end; None without a calibration."""
+        if self.calibration is None:
+            return None
+        start, goal = knowing.match(self.roadmap, self.calibration, np.stack([z_start, z_goal]))
+        return {"start": start, "goal": goal}
+
     def plan_latent(
         self, z_start: np.ndarray, z_goal: np.ndarray, max_paths: int
     ) -> list[LatentPlan]:
+        """All shortest paths; UnknownImageError when an end is not known."""
+        if self.calibration is not None:
+            knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal)
         start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
         paths = self.roadmap.shortest_paths(start, goal, max_paths=max_paths)
         return [LatentPlan(p, self.roadmap.nodes[p]) for p in paths]

@@ -9,20 +9,15 @@ from typing import Any
 
 import numpy as np
 
+from services.planner.knowing import check_ends, load_calibration
 from services.planner.roadmap import Roadmap
 from services.runtime import ServiceContext
 from shared.bus import Handler
 from shared.messages import GraphReply, GraphRequest, PathsReply, PathsRequest, WireArray, unpack
+from shared.plans import UnknownImageError
 from shared.validation import check_latents, check_task
 
 log = logging.getLogger(__name__)
-
-
-def roadmap_paths(
-    roadmap: Roadmap, z_start: np.ndarray, z_goal: np.ndarray, max_paths: int
-) -> list[list[int]]:
-    start, goal = (int(n) for n in roadmap.nearest_node(np.stack([z_start, z_goal])))
-    return roadmap.shortest_paths(start, goal, max_paths=max_paths)
 
 
 def node_labels(folder: Path, nodes: int) -> tuple[list[Any], list[float]] | None:
@@ -46,6 +41,7 @@ def node_labels(folder: Path, nodes: int) -> tuple[list[Any], list[float]] | Non
 
 def setup(context: ServiceContext) -> dict[str, Handler]:
     roadmap = Roadmap.load(context.model.directory / "roadmap")
+    calibration = load_calibration(context.model.directory / "roadmap", roadmap)
     dim, task = context.model.latent_dim, context.model.task
     labels = node_labels(context.model.directory / "roadmap", roadmap.num_nodes)
 
@@ -54,7 +50,19 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         check_task(request.task, task)
         z_start = check_latents("z_start", request.z_start, dim, ndim=1)
         z_goal = check_latents("z_goal", request.z_goal, dim, ndim=1)
-        found = roadmap_paths(roadmap, z_start, z_goal, request.max_plans)
+        try:
+            matched = check_ends(roadmap, calibration, z_start, z_goal)
+        except UnknownImageError as refused:
+            return PathsReply(
+                paths=[],
+                node_ids=[],
+                node_latents=WireArray.of(np.zeros((0, dim), np.float32)),
+                model_id=context.model.model_id,
+                reason=refused.reason,
+                match={end: m.to_json() for end, m in refused.match.items()},
+            )
+        start, goal = matched["start"].node, matched["goal"].node
+        found = roadmap.shortest_paths(start, goal, max_paths=request.max_plans)
         node_ids = sorted({n for path in found for n in path})
         return PathsReply(
             paths=found,
@@ -62,6 +70,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             node_latents=WireArray.of(roadmap.nodes[node_ids].astype(np.float32).reshape(-1, dim)),
             model_id=context.model.model_id,
             reason=None if found else "start and goal are not connected in the roadmap",
+            match={end: m.to_json() for end, m in matched.items()},
         )
 
     def graph(payload: bytes) -> GraphReply:

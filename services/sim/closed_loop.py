@@ -14,7 +14,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
-from shared.plans import VisualActionPlan, most_confident
+from shared.plans import UnknownImageError, VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
 
 
@@ -27,11 +27,14 @@ class Planner(Protocol):
 @dataclass
 class Episode:
     success: bool
-    reason: str  # "goal", "unreachable", "planner_at_goal", "illegal_action", "max_steps", ...
+    # "goal", "unreachable", "planner_at_goal", "illegal_action", "max_steps", "unknown_start"
+    # (the observed scene), "unknown_goal", ...
+    reason: str
     final_state: Any  # None when the world reads as no valid state at the end
     actions: list[Any] = field(default_factory=list)
     images: list[np.ndarray] = field(default_factory=list)  # observed after each action
     illegal_actions: int = 0
+    detail: str | None = None  # the planner's words, where it refused
     # For the paper's Table III: the plans of every planning step, the state before each
     # executed action and the state after it.
     plans: list[list[VisualActionPlan]] = field(default_factory=list)
@@ -65,7 +68,12 @@ def run_episode(
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
-        plans = planner.plan(world.render(), goal_image, max_plans)
+        try:
+            plans = planner.plan(world.render(), goal_image, max_plans)
+        except UnknownImageError as refused:  # never act on a scene the model does not know
+            episode.reason = f"unknown_{refused.end}"
+            episode.detail = refused.reason
+            break
         episode.plans.append(plans)
         if not plans:
             episode.reason = "unreachable"

@@ -140,6 +140,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         return RunReply(
             success=episode.success,
             reason=episode.reason,
+            detail=episode.detail,
             final_state=(
                 None if episode.final_state is None else task.state_to_json(episode.final_state)
             ),

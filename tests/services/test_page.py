@@ -19,6 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from PIL import Image
 from playwright.sync_api import Browser, Page, expect, sync_playwright
@@ -196,6 +197,18 @@ def test_an_uploaded_image_as_the_start(page, stack, tmp_path):
     expect(page.locator(".plan").first).to_be_visible()
     assert_legal(TASK, start, {"stacks": [[], ["red", "green", "blue"], ["yellow"]]},
                  plan_actions(page))  # fmt: skip
+
+
+def test_an_image_the_model_does_not_know_is_refused_on_the_page(page, tmp_path):
+    page, _ = page
+    noise = np.random.default_rng(5).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(tmp_path / "noise.png")
+    page.set_input_files("#start-upload", str(tmp_path / "noise.png"))
+    page.click("#plan-btn")
+    expect(page.locator("#reason")).to_contain_text("the start image is unlike")
+    expect(page.locator("#match .unknown")).to_contain_text("Start: NOT known")
+    expect(page.locator("#match .known")).to_contain_text("Goal: known")
+    assert page.locator(".plan").count() == 0
 
 
 def test_an_api_error_is_shown_next_to_its_field(page, tmp_path):

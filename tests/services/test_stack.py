@@ -230,6 +230,41 @@ def test_invalid_cloth_states_name_their_field(http, body, field, message):
     assert field in reply.text and message in reply.text
 
 
+def noise_png(seed: int) -> str:
+    pixels = np.random.default_rng(seed).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+@pytest.mark.parametrize("end", ["start", "goal"])
+def test_an_image_unlike_the_model_s_gets_no_plan_and_the_reason_names_its_end(http, end):
+    body = {**GOOD, end: {"image": noise_png(1)}}
+    reply = http.post("/plan", json=body)
+    assert reply.status_code == 200, reply.text
+    result = reply.json()
+    other = "goal" if end == "start" else "start"
+    assert result["plans"] == [] and result["reason"].startswith(f"the {end} image is unlike")
+    assert not result["match"][end]["known"] and result["match"][end]["score"] > 1
+    assert result["match"][other]["known"] and result["match"][other]["score"] <= 1
+
+
+def test_every_plan_reply_says_how_well_the_model_knows_both_ends(http):
+    result = http.post("/plan", json=GOOD).json()
+    assert result["plans"] and result["reason"] is None
+    for end in ("start", "goal"):
+        assert result["match"][end]["known"] and 0 <= result["match"][end]["score"] <= 1
+    assert {p["nodes"][0] for p in result["plans"]} == {result["match"]["start"]["node"]}
+
+
+def test_the_closed_loop_stops_before_acting_towards_a_goal_it_does_not_know(http):
+    reply = http.post("/execute", json={**GOOD, "goal": {"image": noise_png(2)}})
+    assert reply.status_code == 200, reply.text
+    result = reply.json()
+    assert not result["success"] and result["reason"] == "unknown_goal"
+    assert result["steps"] == [] and result["detail"].startswith("the goal image is unlike")
+
+
 def test_plan_from_a_state_to_itself_has_no_action(http):
     reply = http.post(
         "/plan",

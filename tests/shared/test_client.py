@@ -13,6 +13,7 @@ from services.sim.worlds import make_world
 from services.stack import free_port
 from shared.bus import BusConfig, Server, close_quietly, open_session, service_key
 from shared.client import PlanningClient
+from shared.plans import UnknownImageError
 from shared.settings import SHIPPED_MODEL, Settings
 from shared.tasks import get_task
 
@@ -73,8 +74,10 @@ def test_plans_check_out_and_each_node_is_decoded_once(services):
     start, goal = start_and_goal()
     before = sum(decoded)
 
-    plans, reason, timings = client.plan_with_reason(start, goal)
+    plans, reason, timings, match = client.plan_with_reason(start, goal)
     assert plans, reason
+    assert match is not None and match["start"].known and match["goal"].known
+    assert plans[0].nodes[0] == match["start"].node and plans[0].nodes[-1] == match["goal"].node
     assert [t.operation for t in timings] == ["encode", "paths", "propose", "decode"]
     assert all(0 < t.handler_ms < t.round_trip_ms for t in timings)
     for plan in plans:
@@ -82,12 +85,27 @@ def test_plans_check_out_and_each_node_is_decoded_once(services):
     first = sum(decoded) - before
     assert first >= len({n for plan in plans for n in plan.nodes})  # one query, each node once
 
-    again, _, timings = client.plan_with_reason(start, goal)
+    again, _, timings, _ = client.plan_with_reason(start, goal)
     assert [t.operation for t in timings] == ["encode", "paths", "propose"]
     assert sum(decoded) - before == first  # nothing decoded the second time
     for one, other in zip(plans, again, strict=True):
         assert one.nodes == other.nodes and one.actions == other.actions
         assert all(np.array_equal(a, b) for a, b in zip(one.images, other.images, strict=True))
+
+
+def test_a_frame_of_noise_is_refused_by_name_and_nothing_is_planned_from_it(services):
+    session, task, _, _ = services
+    client = PlanningClient(session, task)
+    start, goal = start_and_goal()
+    noise = np.random.default_rng(0).integers(0, 256, start.shape, dtype=np.uint8)
+    plans, reason, timings, match = client.plan_with_reason(start, noise)
+    assert plans == [] and reason is not None and reason.startswith("the goal image is unlike")
+    assert [t.operation for t in timings] == ["encode", "paths"]  # no APN, no decoding
+    assert match is not None and match["start"].known and not match["goal"].known
+    assert match["goal"].score > 1
+    with pytest.raises(UnknownImageError) as refused:
+        client.plan(noise, goal)
+    assert refused.value.end == "start"
 
 
 def test_images_of_another_decoder_model_are_not_kept(services):

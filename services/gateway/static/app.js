@@ -377,9 +377,23 @@ function nodeState(node) {
   return found ? found.state : null;
 }
 
+// How well the model knows each end: an end it does not know gets no plan, and says so.
+function showMatch(match) {
+  const box = $("match");
+  box.replaceChildren();
+  if (!match) return;
+  for (const end of ["start", "goal"]) {
+    const m = match[end];
+    const text = `${end[0].toUpperCase() + end.slice(1)}: ` + (m.known ? "known" : "NOT known") +
+      ` (score ${m.score.toFixed(2)}, 1 at most; nearest node ${m.node})`;
+    box.append(el("span", { class: m.known ? "known" : "unknown", text }));
+  }
+}
+
 async function plan() {
   clearErrors();
   $("reason").textContent = "";
+  showMatch(null);
   $("timing").textContent = "";
   const list = $("plan-list");
   list.replaceChildren(el("p", { class: "muted", text: "Planning…" }));
@@ -393,6 +407,7 @@ async function plan() {
     });
     $("timing").textContent = timingText(reply.headers.get("server-timing"));
     const body = await reply.json();
+    showMatch(body.match);
     ui.plans = body.plans;
     ui.selected = 0;
     list.replaceChildren();
@@ -473,8 +488,8 @@ async function execute() {
         status.className = data.success ? "success" : "failure";
         status.textContent = data.success ?
           `Success: the simulator reached the goal in ${data.steps} step${data.steps === 1 ? "" : "s"}.` :
-          `Failure: the goal was not reached (${data.reason}) after ${data.steps} steps; ` +
-          `final state ${stateText(data.final_state)}.`;
+          `Failure: the goal was not reached (${data.detail || data.reason}) after ` +
+          `${data.steps} steps; final state ${stateText(data.final_state)}.`;
       } else if (event === "error") {
         status.className = "failure";
         status.textContent = "Execution stopped.";
@@ -693,6 +708,7 @@ async function chooseTask(task) {
   nodeImages.clear();
   $("plan-list").replaceChildren();
   $("reason").textContent = "";
+  showMatch(null);
   $("timing").textContent = "";
   $("exec-steps").replaceChildren();
   $("exec-status").textContent = "Not run yet.";

@@ -117,6 +117,8 @@ def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
     ):
         assert key in row
     assert 0 <= row["any"] <= 100 and row["all"] <= row["any"]
+    assert 0 <= row["pairs_known"] <= 100 and 0 <= row["known_images"] <= 100
+    assert row["match_threshold"] > 0
     assert figure.read_bytes()[:4] == b"\x89PNG"
 
 

@@ -5,7 +5,7 @@ import pytest
 
 from services.planner.action_plans import ActionPlanner
 from services.sim.closed_loop import evaluate_system, optimal_moves, run_episode
-from shared.plans import VisualActionPlan
+from shared.plans import Match, UnknownImageError, VisualActionPlan
 from shared.tasks.base import WorldError
 from shared.tasks.box_stacking import Cell, Move
 
@@ -66,6 +66,30 @@ def test_unreachable_and_illegal_stop_the_loop(world):
     episode = run_episode(FixedPlanner([illegal]), world, start, goal, rng)
     assert episode.reason == "illegal_action" and episode.illegal_actions == 1
     assert episode.final_state == start and not episode.success
+
+
+class ScenePlanner:
+    """Knows the scene until `known` actions have been executed, then refuses its start."""
+
+    def __init__(self, world, goal, known):
+        self.oracle, self.known, self.calls = OraclePlanner(world, goal), known, 0
+
+    def plan(self, start, goal, max_plans=8):
+        self.calls += 1
+        if self.calls > self.known:
+            match = {"start": Match(False, 4.2, 7), "goal": Match(True, 0.1, 3)}
+            raise UnknownImageError("start", "the start image is unlike anything", match)
+        return self.oracle.plan(start, goal, max_plans)
+
+
+def test_an_unknown_observed_scene_stops_the_loop_without_acting_on_it(world):
+    start = state(world, [["red", "green", "blue"], ["yellow"], []])
+    goal = state(world, [[], ["yellow", "blue"], ["green", "red"]])
+    planner = ScenePlanner(world, goal, known=1)
+    episode = run_episode(planner, world, start, goal, np.random.default_rng(0))
+    assert episode.reason == "unknown_start" and episode.detail.startswith("the start image")
+    assert len(episode.actions) == 1 and not episode.success  # one action, then it stopped
+    assert episode.final_state == episode.states[-1]
 
 
 @pytest.mark.skipif(not (SHIPPED / "apn").is_dir(), reason="shipped model not present")
