@@ -75,9 +75,9 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
         start = decode_b64_image("start.image", body["start"]["image"], planner.image_size)
         goal = decode_b64_image("goal.image", body["goal"]["image"], planner.image_size)
         t1 = time.perf_counter()
-        z = planner.planner.encode(np.stack([start, goal]))  # ActionPlanner.plan, in two steps
+        z, errors = planner.planner.look(np.stack([start, goal]))  # ActionPlanner.plan, split
         t_encoded = time.perf_counter()
-        plans = planner.plan_latent(z[0], z[1], body["max_plans"])
+        plans = planner.plan_latent(z[0], z[1], body["max_plans"], errors)
         t2 = time.perf_counter()
         json.dumps(
             [

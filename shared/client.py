@@ -107,12 +107,14 @@ class PlanningClient:
         deadline = deadline or self.deadline()
         images_in = EncodeRequest(task=self.task_name, images=WireArray.of(np.stack([start, goal])))
         encoding = self._call("encoder", "encode", images_in, EncodeReply, deadline)
-        z_start, z_goal = encoding.result().latents.numpy()
+        encoded: EncodeReply = encoding.result()
+        z_start, z_goal = encoded.latents.numpy()
         search = PathsRequest(
             task=self.task_name,
             z_start=WireArray.of(z_start),
             z_goal=WireArray.of(z_goal),
             max_plans=max_plans,
+            errors=encoded.errors,
         )
         searching = self._call("planner", "paths", search, PathsReply, deadline)
         found: PathsReply = searching.result()

@@ -70,11 +70,11 @@ def cmd_plan(args: argparse.Namespace) -> int:
         goal, _ = _image_or_state(
             planner.task, world, args.goal_image, args.goal_state, rng, "goal"
         )
-        z = planner.planner.encode(np.stack([start, goal]))
-        matched = planner.planner.match(z[0], z[1])
+        z, errors = planner.planner.look(np.stack([start, goal]))
+        matched = planner.planner.match(z[0], z[1], errors)
         reason = None
         try:
-            plans = planner.plan_latent(z[0], z[1], max_plans=args.max_plans)
+            plans = planner.plan_latent(z[0], z[1], args.max_plans, errors)
         except UnknownImageError as refused:
             plans, reason = [], refused.reason
         args.out.mkdir(parents=True, exist_ok=True)

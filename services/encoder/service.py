@@ -1,4 +1,4 @@
-"""The encoder service: images -> latent means, latents -> images.
+"""The encoder service: images -> latent means (and reconstruction errors), latents -> images.
 
 Encoding is batched: the images of every encode query queued at once go through one forward
 pass. Decoded roadmap nodes are cached by the callers (`shared.client.PlanningClient`), not here.
@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from services.encoder.checkpoint import decode_latents, encode_images, load_vae
+from services.planner.knowing import reconstruction_errors
 from services.runtime import ServiceContext
 from shared.bus import Batched, Operation
 from shared.messages import (
@@ -34,9 +35,14 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
         return check_images("images", request.images, size, max_rows=MAX_BATCH)
 
     def encode(batches: list[np.ndarray]) -> list[EncodeReply]:
-        latents = encode_images(vae, np.concatenate(batches))[0]
-        ends = np.cumsum([len(images) for images in batches])[:-1]
-        return [EncodeReply(latents=WireArray.of(z)) for z in np.split(latents, ends)]
+        images = np.concatenate(batches)
+        latents = encode_images(vae, images)[0]
+        errors = reconstruction_errors(vae, images, latents)  # for knowing the images
+        ends = np.cumsum([len(batch) for batch in batches])[:-1]
+        return [
+            EncodeReply(latents=WireArray.of(z), errors=WireArray.of(e.astype(np.float32)))
+            for z, e in zip(np.split(latents, ends), np.split(errors, ends), strict=True)
+        ]
 
     def decode(payload: bytes) -> DecodeReply:
         request = unpack(payload, DecodeRequest)

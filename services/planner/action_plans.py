@@ -53,14 +53,18 @@ class ActionPlanner:
     ) -> list[VisualActionPlan]:
         """Plans from a start image to a goal image, in the roadmap's deterministic order;
         UnknownImageError when an end is unlike anything the model knows."""
-        z = self.planner.encode(np.stack([start, goal]))
-        return self.plan_latent(z[0], z[1], max_plans)
+        z, errors = self.planner.look(np.stack([start, goal]))
+        return self.plan_latent(z[0], z[1], max_plans, errors)
 
     def plan_latent(
-        self, z_start: np.ndarray, z_goal: np.ndarray, max_plans: int = 8
+        self,
+        z_start: np.ndarray,
+        z_goal: np.ndarray,
+        max_plans: int = 8,
+        errors: np.ndarray | None = None,
     ) -> list[VisualActionPlan]:
         plans = []
-        for latent_plan in self.planner.plan_latent(z_start, z_goal, max_plans):
+        for latent_plan in self.planner.plan_latent(z_start, z_goal, max_plans, errors):
             z = latent_plan.latents
             arrays, confidences = propose(self.apn, z[:-1], z[1:]) if len(z) > 1 else ([], [])
             plans.append(

@@ -12,7 +12,7 @@ import numpy as np
 from services.encoder.checkpoint import encode_images, load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
-from services.planner.knowing import calibrate, save_calibration
+from services.planner.knowing import calibrate, reconstruction_errors, save_calibration
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapConfig, build_roadmap
 from shared.checkpoint import seal
 from shared.dataset import Dataset, load_dataset
@@ -37,6 +37,13 @@ def encode_pairs(vae_dir: Path | str, data: Dataset) -> tuple[np.ndarray, np.nda
     return encode_images(model, data.image1)[0], encode_images(model, data.image2)[0]
 
 
+def pair_errors(vae_dir: Path | str, data: Dataset, mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:
+    """Reconstruction errors of image1 then image2 of every tuple (the order of mu1, mu2)."""
+    model, _ = load_vae(vae_dir)
+    first = reconstruction_errors(model, data.image1, mu1)
+    return np.concatenate([first, reconstruction_errors(model, data.image2, mu2)])
+
+
 def interleave(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """Rows in the roadmap's point order: first[0], second[0], first[1], ..."""
     return np.stack([first, second], axis=1).reshape(-1, *first.shape[1:])
@@ -52,7 +59,9 @@ def build_from_dataset(
     roadmap = build_roadmap(mu1, mu2, data.a, config)
     built = time.perf_counter()
     roadmap.save(out_dir)
-    calibration = calibrate(roadmap, np.concatenate([mu1, mu2]))
+    calibration = calibrate(
+        roadmap, np.concatenate([mu1, mu2]), pair_errors(vae_dir, data, mu1, mu2)
+    )
     save_calibration(calibration, out_dir)
     seal(out_dir, [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
     purity: dict[str, Any] = {}
@@ -85,7 +94,9 @@ def calibrate_model(model_dir: Path | str, data_dir: Path | str) -> dict[str, An
     if data.task != task:
         raise ValueError(f"{data_dir} holds {data.task!r} data, the model plans {task!r}")
     roadmap = Roadmap.load(model_dir / "roadmap")
-    calibration = calibrate(roadmap, np.concatenate(encode_pairs(model_dir / "vae", data)))
+    mu1, mu2 = encode_pairs(model_dir / "vae", data)
+    errors = pair_errors(model_dir / "vae", data, mu1, mu2)
+    calibration = calibrate(roadmap, np.concatenate([mu1, mu2]), errors)
     save_calibration(calibration, model_dir / "roadmap")
     seal(model_dir / "roadmap", [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
     return calibration.to_json()

@@ -18,7 +18,7 @@ from services.planner.evaluate import (
     evaluate_plans,
     sample_test_pairs,
 )
-from services.planner.knowing import MatchError, load_calibration, match
+from services.planner.knowing import MatchError, load_calibration, match, reconstruction_errors
 from services.planner.roadmap import Roadmap
 from services.sim.state_reader import StateReader, load_reader, read_states
 from shared.dataset import Dataset, load_dataset
@@ -31,7 +31,12 @@ def load_test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]
 
 
 def _known(
-    model_dir: Path | str, roadmap: Roadmap, z_test: np.ndarray, test_pairs: np.ndarray
+    model_dir: Path | str,
+    vae: VAE,
+    roadmap: Roadmap,
+    images: np.ndarray,
+    z_test: np.ndarray,
+    test_pairs: np.ndarray,
 ) -> dict[str, Any]:
     """How many test images the model knows, and test pairs with both ends known: refusing
     the others costs Table I at most 100 - pairs_known points."""
@@ -39,7 +44,8 @@ def _known(
         calibration = load_calibration(Path(model_dir) / "roadmap", roadmap)
     except MatchError:
         return {}
-    known = np.array([m.known for m in match(roadmap, calibration, z_test)])
+    errors = reconstruction_errors(vae, images, z_test)
+    known = np.array([m.known for m in match(roadmap, calibration, z_test, errors)])
     return {
         "known_images": 100.0 * float(known.mean()),
         "pairs_known": 100.0 * float(known[test_pairs].all(1).mean()),
@@ -86,7 +92,7 @@ def run_vfm_eval(
             task_name, roadmap, labels, z_test, states, test_pairs, max_paths, node_reads
         ),
     }
-    row.update(_known(model_dir, roadmap, z_test, test_pairs))
+    row.update(_known(model_dir, vae, roadmap, images, z_test, test_pairs))
     if reader is not None:
         row["reader_on_test_renders"] = 100.0 * float(
             (read_states(reader, images) == states).reshape(len(images), -1).all(1).mean()

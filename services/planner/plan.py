@@ -46,26 +46,41 @@ class VisualPlanner:
             )
         return encode_images(self.vae, images)[0]
 
-    def match(self, z_start: np.ndarray, z_goal: np.ndarray) -> dict[str, Match] | None:
+    def look(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Encoder means and reconstruction errors: what planning and knowing need."""
+        z = self.encode(images)
+        return z, knowing.reconstruction_errors(self.vae, images, z)
+
+    def match(
+        self, z_start: np.ndarray, z_goal: np.ndarray, errors: np.ndarray
+    ) -> dict[str, Match] | None:
         """How well the model knows each end; None without a calibration."""
         if self.calibration is None:
             return None
-        start, goal = knowing.match(self.roadmap, self.calibration, np.stack([z_start, z_goal]))
+        both = np.stack([z_start, z_goal])
+        start, goal = knowing.match(self.roadmap, self.calibration, both, errors)
         return {"start": start, "goal": goal}
 
     def plan_latent(
-        self, z_start: np.ndarray, z_goal: np.ndarray, max_paths: int
+        self,
+        z_start: np.ndarray,
+        z_goal: np.ndarray,
+        max_paths: int,
+        errors: np.ndarray | None = None,
     ) -> list[LatentPlan]:
-        """All shortest paths; UnknownImageError when an end is not known."""
+        """All shortest paths; UnknownImageError when an end is not known (a calibrated
+        planner needs both images' reconstruction errors, from `look`)."""
         if self.calibration is not None:
-            knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal)
+            if errors is None:
+                raise ValueError("a calibrated planner needs the images' reconstruction errors")
+            knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal, errors)
         start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
         paths = self.roadmap.shortest_paths(start, goal, max_paths=max_paths)
         return [LatentPlan(p, self.roadmap.nodes[p]) for p in paths]
 
     def plan(self, start: np.ndarray, goal: np.ndarray, max_paths: int = 16) -> list[LatentPlan]:
-        z = self.encode(np.stack([start, goal]))
-        return self.plan_latent(z[0], z[1], max_paths)
+        z, errors = self.look(np.stack([start, goal]))
+        return self.plan_latent(z[0], z[1], max_paths, errors)
 
     def node_images(self, nodes: list[int]) -> list[np.ndarray]:
         """Decoded representatives, decoding only the nodes not seen before."""

@@ -15,7 +15,7 @@ from services.runtime import ServiceContext
 from shared.bus import Handler
 from shared.messages import GraphReply, GraphRequest, PathsReply, PathsRequest, WireArray, unpack
 from shared.plans import UnknownImageError
-from shared.validation import check_latents, check_task
+from shared.validation import FieldError, check_latents, check_task
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +50,13 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         check_task(request.task, task)
         z_start = check_latents("z_start", request.z_start, dim, ndim=1)
         z_goal = check_latents("z_goal", request.z_goal, dim, ndim=1)
+        if request.errors is None:
+            raise FieldError("errors", "both images' reconstruction errors are needed")
+        errors = request.errors.numpy().astype(np.float64).reshape(-1)
+        if errors.shape != (2,) or not np.isfinite(errors).all() or (errors < 0).any():
+            raise FieldError("errors", "must be two finite, non-negative numbers")
         try:
-            matched = check_ends(roadmap, calibration, z_start, z_goal)
+            matched = check_ends(roadmap, calibration, z_start, z_goal, errors)
         except UnknownImageError as refused:
             return PathsReply(
                 paths=[],

@@ -37,53 +37,75 @@ def chain():
             a.append(1)
     z1, z2 = np.array(z1), np.array(z2)
     roadmap = build_roadmap(z1, z2, np.array(a), RoadmapConfig(min_samples=3))
-    return roadmap, np.concatenate([z1, z2]), centres
+    errors = rng.uniform(0.001, 0.002, 2 * len(z1))  # reconstruction errors of the images
+    return roadmap, np.concatenate([z1, z2]), centres, errors
 
 
-def test_the_threshold_is_a_factor_over_what_training_images_reach(chain):
-    roadmap, latents, _ = chain
-    calibration = calibrate(roadmap, latents)
+GOOD = np.array([0.0015, 0.0015])  # two images the model redraws as well as its training ones
+
+
+def test_the_thresholds_are_a_factor_over_what_training_images_reach(chain):
+    roadmap, latents, _, errors = chain
+    calibration = calibrate(roadmap, latents, errors)
     assert calibration.images == len(latents) and calibration.metric == "l1"
     assert calibration.training_quantile <= calibration.training_max
     assert calibration.threshold == pytest.approx(FACTOR * calibration.training_quantile)
-    assert all(found.known for found in match(roadmap, calibration, latents))
+    assert calibration.recon_threshold == pytest.approx(FACTOR * calibration.recon_quantile)
+    assert calibration.recon_quantile <= calibration.recon_max <= 0.002
+    assert all(found.known for found in match(roadmap, calibration, latents, errors))
 
 
 def test_an_image_far_from_every_region_is_not_known_and_names_its_node(chain):
-    roadmap, latents, centres = chain
-    calibration = calibrate(roadmap, latents)
+    roadmap, latents, centres, errors = chain
+    calibration = calibrate(roadmap, latents, errors)
     near, between = match(
-        roadmap, calibration, np.stack([centres[2], (centres[0] + centres[1]) / 2])
+        roadmap, calibration, np.stack([centres[2], (centres[0] + centres[1]) / 2]), GOOD
     )
     assert near.known and near.score < 1
     assert not between.known and between.score > 10 and between.node in (0, 1)
     with pytest.raises(UnknownImageError) as refused:
-        check_ends(roadmap, calibration, centres[0], centres[1] / 2)
+        check_ends(roadmap, calibration, centres[0], centres[1] / 2, GOOD)
     assert refused.value.end == "goal" and "goal image is unlike" in refused.value.reason
     assert refused.value.match["start"].known
 
 
+def test_an_image_the_model_cannot_redraw_is_not_known_even_inside_a_region(chain):
+    roadmap, latents, centres, errors = chain
+    calibration = calibrate(roadmap, latents, errors)
+    inside, badly_drawn = match(
+        roadmap, calibration, np.stack([centres[1], centres[1]]), np.array([0.0015, 0.05])
+    )
+    assert inside.known and not badly_drawn.known and badly_drawn.node == inside.node == 1
+    assert badly_drawn.score == pytest.approx(0.05 / calibration.recon_threshold)
+
+
 def test_the_planner_refuses_an_unknown_start_before_searching(chain):
-    roadmap, latents, centres = chain
+    roadmap, latents, centres, errors = chain
     vae = VAE(VAEConfig(image_size=32, latent_dim=4)).eval()
-    planner = VisualPlanner(vae, roadmap, calibrate(roadmap, latents))
-    assert [p.nodes for p in planner.plan_latent(centres[0], centres[2], 4)] == [[0, 1, 2]]
+    planner = VisualPlanner(vae, roadmap, calibrate(roadmap, latents, errors))
+    plans = planner.plan_latent(centres[0], centres[2], 4, GOOD)
+    assert [p.nodes for p in plans] == [[0, 1, 2]]
     with pytest.raises(UnknownImageError, match="start image"):
-        planner.plan_latent(centres[0] + 3.0, centres[2], 4)
+        planner.plan_latent(centres[0] + 3.0, centres[2], 4, GOOD)
+    with pytest.raises(ValueError, match="reconstruction errors"):
+        planner.plan_latent(centres[0], centres[2], 4)
     assert VisualPlanner(vae, roadmap).plan_latent(centres[0] + 3.0, centres[2], 4)  # uncalibrated
 
 
 def test_a_calibration_round_trips_and_bad_files_are_named(chain, tmp_path):
-    roadmap, latents, _ = chain
-    calibration = calibrate(roadmap, latents)
+    roadmap, latents, _, errors = chain
+    calibration = calibrate(roadmap, latents, errors)
     save_calibration(calibration, tmp_path)
     assert load_calibration(tmp_path, roadmap) == calibration
     document = json.loads((tmp_path / "match.json").read_text())
     (tmp_path / "match.json").write_text(json.dumps({**document, "metric": "l2"}))
     with pytest.raises(MatchError, match="calibrated in l2"):
         load_calibration(tmp_path, roadmap)
-    (tmp_path / "match.json").write_text(json.dumps({**document, "threshold": -1}))
-    with pytest.raises(MatchError, match="positive"):
+    (tmp_path / "match.json").write_text(json.dumps({**document, "recon_threshold": -1}))
+    with pytest.raises(MatchError, match="recon_threshold must be a positive"):
+        load_calibration(tmp_path, roadmap)
+    (tmp_path / "match.json").write_text(json.dumps({**document, "version": 1}))
+    with pytest.raises(MatchError, match="calibrate the model again"):
         load_calibration(tmp_path, roadmap)
     (tmp_path / "match.json").unlink()
     with pytest.raises(MatchError, match="lsr calibrate"):
