@@ -25,6 +25,8 @@ def cmd_robot(args: argparse.Namespace) -> int:
     finally:
         close_quietly(session)
     outcome = "reached the goal" if episode.success else f"stopped: {episode.reason}"
+    if episode.detail:  # the planner refused what the robot saw: say why, in its words
+        outcome += f" ({episode.detail})"
     print(f"[{args.robot_id}] {outcome} after {len(episode.actions)} actions")
     return 0 if episode.success else 1
 
