@@ -26,6 +26,7 @@ import numpy as np
 
 from services.encoder.checkpoint import decode_latents
 from services.encoder.model import VAE
+from services.planner.regions import metric_p
 from services.planner.roadmap import Roadmap
 from shared.checkpoint import replace_atomically
 from shared.plans import Match, UnknownImageError, refused_end
@@ -75,8 +76,7 @@ def distances(roadmap: Roadmap, latents: np.ndarray) -> tuple[np.ndarray, np.nda
     latents = np.asarray(latents, dtype=np.float64).reshape(-1, roadmap.nodes.shape[1])
     nodes = np.atleast_1d(roadmap.nearest_node(latents))
     gaps = latents - roadmap.nodes[nodes].astype(np.float64)
-    order = {"l1": 1, "l2": 2, "inf": np.inf}[roadmap.config.metric]
-    return nodes, np.linalg.norm(gaps, ord=order, axis=1)
+    return nodes, np.linalg.norm(gaps, ord=metric_p(roadmap.config.metric), axis=1)
 
 
 def calibrate(
