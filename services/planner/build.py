@@ -12,7 +12,7 @@ import numpy as np
 from services.encoder.checkpoint import encode_images, load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
-from services.planner.knowing import calibrate, reconstruction_errors, save_calibration
+from services.planner.knowing import Calibration, calibrate, reconstruction_errors, save_calibration
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapConfig, build_roadmap
 from shared.checkpoint import seal
 from shared.dataset import Dataset, load_dataset
@@ -37,11 +37,23 @@ def encode_pairs(vae_dir: Path | str, data: Dataset) -> tuple[np.ndarray, np.nda
     return encode_images(model, data.image1)[0], encode_images(model, data.image2)[0]
 
 
-def pair_errors(vae_dir: Path | str, data: Dataset, mu1: np.ndarray, mu2: np.ndarray) -> np.ndarray:
-    """Reconstruction errors of image1 then image2 of every tuple (the order of mu1, mu2)."""
+def calibrate_and_seal(
+    vae_dir: Path | str,
+    data: Dataset,
+    roadmap: Roadmap,
+    mu1: np.ndarray,
+    mu2: np.ndarray,
+    roadmap_dir: Path | str,
+) -> Calibration:
+    """What the roadmap knows, from every training image (mu1, mu2: the latents of image1 and
+    image2), written beside the roadmap and sealed with it: build-roadmap and lsr calibrate."""
     model, _ = load_vae(vae_dir)
-    first = reconstruction_errors(model, data.image1, mu1)
-    return np.concatenate([first, reconstruction_errors(model, data.image2, mu2)])
+    pairs = ((data.image1, mu1), (data.image2, mu2))
+    errors = np.concatenate([reconstruction_errors(model, x, mu) for x, mu in pairs])
+    calibration = calibrate(roadmap, np.concatenate([mu1, mu2]), errors)
+    save_calibration(calibration, roadmap_dir)
+    seal(roadmap_dir, [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
+    return calibration
 
 
 def interleave(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -59,11 +71,7 @@ def build_from_dataset(
     roadmap = build_roadmap(mu1, mu2, data.a, config)
     built = time.perf_counter()
     roadmap.save(out_dir)
-    calibration = calibrate(
-        roadmap, np.concatenate([mu1, mu2]), pair_errors(vae_dir, data, mu1, mu2)
-    )
-    save_calibration(calibration, out_dir)
-    seal(out_dir, [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
+    calibration = calibrate_and_seal(vae_dir, data, roadmap, mu1, mu2, out_dir)
     purity: dict[str, Any] = {}
     if data.spec.state is not None:  # node labels need the states the data declares
         labels = label_nodes(
@@ -95,11 +103,8 @@ def calibrate_model(model_dir: Path | str, data_dir: Path | str) -> dict[str, An
         raise ValueError(f"{data_dir} holds {data.task!r} data, the model plans {task!r}")
     roadmap = Roadmap.load(model_dir / "roadmap")
     mu1, mu2 = encode_pairs(model_dir / "vae", data)
-    errors = pair_errors(model_dir / "vae", data, mu1, mu2)
-    calibration = calibrate(roadmap, np.concatenate([mu1, mu2]), errors)
-    save_calibration(calibration, model_dir / "roadmap")
-    seal(model_dir / "roadmap", [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
-    return calibration.to_json()
+    roadmap_dir = model_dir / "roadmap"
+    return calibrate_and_seal(model_dir / "vae", data, roadmap, mu1, mu2, roadmap_dir).to_json()
 
 
 def load_labels(roadmap_dir: Path | str, task_name: str) -> NodeLabels:
