@@ -78,7 +78,7 @@ class EncodeRequest(TaskMessage):
 
 class EncodeReply(Message):
     latents: WireArray  # float32 (N, D): the encoder means
-    errors: WireArray | None = None  # float32 (N,): reconstruction errors, pixels in [0, 1]
+    errors: WireArray | None = None  # float32 (N, 2): reconstruction errors, whole and worst patch
 
 
 class DecodeRequest(TaskMessage):
@@ -95,7 +95,7 @@ class PathsRequest(TaskMessage):
     z_start: WireArray  # float32 (D,)
     z_goal: WireArray
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
-    errors: WireArray | None = None  # float32 (2,): both images' reconstruction errors
+    errors: WireArray | None = None  # float32 (2, 2): both images' EncodeReply.errors
 
 
 class PathsReply(Message):

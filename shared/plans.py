@@ -17,18 +17,26 @@ class VisualActionPlan:
     actions: list[Any]  # the task's actions between consecutive images
     confidences: list[float]  # the APN's confidence in each action
 
+    @property
+    def confidence(self) -> float:
+        """The product of the actions' confidences (1 without actions): how often plans at a
+        confidence were valid on held-out data is in the README's reliability table."""
+        return float(np.prod(self.confidences)) if self.confidences else 1.0
+
     def to_json(self, task: Task) -> dict[str, Any]:
         return {
             "nodes": self.nodes,
             "actions": [task.action_to_json(a) for a in self.actions],
             "confidences": [round(c, 6) for c in self.confidences],
+            "confidence": round(self.confidence, 6),
         }
 
 
 @dataclass(frozen=True)
 class Match:
-    """How one image relates to the roadmap: `score` is its distance to the nearest node over
-    the model's calibrated threshold, so an image is known while it is at most 1."""
+    """How one image relates to the roadmap: `score` is the largest of its distance to the
+    nearest node and its reconstruction errors, each over the model's calibrated threshold, so
+    an image is known while it is at most 1."""
 
     known: bool
     score: float

@@ -78,13 +78,18 @@ class Plan(BaseModel):
     actions: list[dict[str, Any]]
     nodes: list[int]
     confidences: list[float] = Field(description="the APN's confidence in each action")
+    confidence: float = Field(
+        description="the product of the actions' confidences; the README's reliability table "
+        "says how often plans at a confidence were valid on held-out data"
+    )
 
 
 class EndMatch(BaseModel):
     known: bool
     score: float = Field(
-        description="distance of the image's latent to the nearest roadmap node over the "
-        "model's calibrated threshold: known while at most 1"
+        description="the largest of the image's latent distance to the nearest roadmap node "
+        "and its reconstruction errors, each over the model's calibrated threshold: known while "
+        "at most 1"
     )
     node: int | None = Field(description="the nearest roadmap node")
 

@@ -36,21 +36,15 @@ def _known(
     roadmap: Roadmap,
     images: np.ndarray,
     z_test: np.ndarray,
-    test_pairs: np.ndarray,
-) -> dict[str, Any]:
-    """How many test images the model knows, and test pairs with both ends known: refusing
-    the others costs Table I at most 100 - pairs_known points."""
+) -> tuple[dict[str, Any], np.ndarray | None]:
+    """How many test images the model knows (and which), by its calibration."""
     try:
         calibration = load_calibration(Path(model_dir) / "roadmap", roadmap)
     except MatchError:
-        return {}
+        return {}, None
     errors = reconstruction_errors(vae, images, z_test)
     known = np.array([m.known for m in match(roadmap, calibration, z_test, errors)])
-    return {
-        "known_images": 100.0 * float(known.mean()),
-        "pairs_known": 100.0 * float(known[test_pairs].all(1).mean()),
-        "match_threshold": calibration.threshold,
-    }
+    return {"known_images": 100.0 * float(known.mean())}, known
 
 
 def run_vfm_eval(
@@ -92,7 +86,19 @@ def run_vfm_eval(
             task_name, roadmap, labels, z_test, states, test_pairs, max_paths, node_reads
         ),
     }
-    row.update(_known(model_dir, vae, roadmap, images, z_test, test_pairs))
+    known_row, known = _known(model_dir, vae, roadmap, images, z_test)
+    row.update(known_row)
+    if known is not None:
+        # With refusal on a pair with an unknown end gets no plan: Table I over all pairs
+        # counts it as failed; `known_pairs` says how the plans of the others fared.
+        both = known[test_pairs].all(1)
+        row["pairs_known"] = 100.0 * float(both.mean())
+        if both.any():
+            kept = evaluate_plans(
+                task_name, roadmap, labels, z_test, states, test_pairs[both], max_paths
+            )
+            row["known_pairs"] = {k: kept[k] for k in ("pairs", "all", "any", "trans")}
+            row["refusal_on"] = {k: kept[k] * float(both.mean()) for k in ("all", "any")}
     if reader is not None:
         row["reader_on_test_renders"] = 100.0 * float(
             (read_states(reader, images) == states).reshape(len(images), -1).all(1).mean()

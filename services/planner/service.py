@@ -52,9 +52,11 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         z_goal = check_latents("z_goal", request.z_goal, dim, ndim=1)
         if request.errors is None:
             raise FieldError("errors", "both images' reconstruction errors are needed")
-        errors = request.errors.numpy().astype(np.float64).reshape(-1)
-        if errors.shape != (2,) or not np.isfinite(errors).all() or (errors < 0).any():
-            raise FieldError("errors", "must be two finite, non-negative numbers")
+        errors = request.errors.numpy().astype(np.float64)
+        if errors.shape != (2, 2) or not np.isfinite(errors).all() or (errors < 0).any():
+            raise FieldError(
+                "errors", "must be 2 x 2 finite, non-negative numbers (whole image, worst patch)"
+            )
         try:
             matched = check_ends(roadmap, calibration, z_start, z_goal, errors)
         except UnknownImageError as refused:

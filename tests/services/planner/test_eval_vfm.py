@@ -118,7 +118,9 @@ def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
         assert key in row
     assert 0 <= row["any"] <= 100 and row["all"] <= row["any"]
     assert 0 <= row["pairs_known"] <= 100 and 0 <= row["known_images"] <= 100
-    assert row["match_threshold"] > 0
+    if row["pairs_known"] > 0:  # the known pairs' plans, and Table I with refusal on
+        assert row["known_pairs"]["pairs"] == round(row["pairs"] * row["pairs_known"] / 100)
+        assert row["refusal_on"]["all"] <= row["known_pairs"]["all"]
     assert figure.read_bytes()[:4] == b"\x89PNG"
 
 

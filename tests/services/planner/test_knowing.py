@@ -37,11 +37,14 @@ def chain():
             a.append(1)
     z1, z2 = np.array(z1), np.array(z2)
     roadmap = build_roadmap(z1, z2, np.array(a), RoadmapConfig(min_samples=3))
-    errors = rng.uniform(0.001, 0.002, 2 * len(z1))  # reconstruction errors of the images
+    # reconstruction errors of the images: whole image, worst patch
+    errors = np.column_stack(
+        [rng.uniform(0.001, 0.002, 2 * len(z1)), rng.uniform(0.002, 0.004, 2 * len(z1))]
+    )
     return roadmap, np.concatenate([z1, z2]), centres, errors
 
 
-GOOD = np.array([0.0015, 0.0015])  # two images the model redraws as well as its training ones
+GOOD = np.array([[0.0015, 0.003]] * 2)  # two images the model redraws as well as its training ones
 
 
 def test_the_thresholds_are_a_factor_over_what_training_images_reach(chain):
@@ -51,7 +54,13 @@ def test_the_thresholds_are_a_factor_over_what_training_images_reach(chain):
     assert calibration.training_quantile <= calibration.training_max
     assert calibration.threshold == pytest.approx(FACTOR * calibration.training_quantile)
     assert calibration.recon_threshold == pytest.approx(FACTOR * calibration.recon_quantile)
+    assert calibration.patch_threshold == pytest.approx(FACTOR * calibration.patch_quantile)
     assert calibration.recon_quantile <= calibration.recon_max <= 0.002
+    assert 0.002 <= calibration.patch_quantile <= calibration.patch_max <= 0.004
+    nodes = roadmap.nearest_node(latents)
+    for node, limit in enumerate(calibration.node_thresholds):  # 41 images each: their own
+        mine = np.abs(latents[nodes == node] - roadmap.nodes[node]).sum(1)
+        assert limit == pytest.approx(FACTOR * np.quantile(mine, calibration.quantile))
     assert all(found.known for found in match(roadmap, calibration, latents, errors))
 
 
@@ -73,10 +82,44 @@ def test_an_image_the_model_cannot_redraw_is_not_known_even_inside_a_region(chai
     roadmap, latents, centres, errors = chain
     calibration = calibrate(roadmap, latents, errors)
     inside, badly_drawn = match(
-        roadmap, calibration, np.stack([centres[1], centres[1]]), np.array([0.0015, 0.05])
+        roadmap,
+        calibration,
+        np.stack([centres[1], centres[1]]),
+        np.array([[0.0015, 0.003], [0.05, 0.003]]),
     )
     assert inside.known and not badly_drawn.known and badly_drawn.node == inside.node == 1
     assert badly_drawn.score == pytest.approx(0.05 / calibration.recon_threshold)
+    # wrong in one place only (a covered corner): the worst patch tells
+    _, covered = match(
+        roadmap, calibration, np.stack([centres[1]] * 2), np.array([[0.0015, 0.003], [0.0015, 0.5]])
+    )
+    assert not covered.known and covered.score == pytest.approx(0.5 / calibration.patch_threshold)
+
+
+def test_a_region_is_judged_by_its_own_spread():
+    """A tight region and a broad one: an image as far from the tight one's centre as the broad
+    one's images lie from theirs is not known there (one pooled threshold would pass it)."""
+    rng = np.random.default_rng(2)
+    centres = np.array([[0.0] * 4, [20.0] * 4])
+    spreads = (0.02, 1.0)
+    z1 = np.concatenate(
+        [c + rng.normal(0, s, (60, 4)) for c, s in zip(centres, spreads, strict=True)]
+    )
+    z2 = np.concatenate(
+        [c + rng.normal(0, s, (60, 4)) for c, s in zip(centres, spreads, strict=True)]
+    )
+    a = np.zeros(120, int)
+    a[0], z2[0] = 1, z2[60]  # one action between the regions
+    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(min_samples=3))
+    latents = np.concatenate([z1, z2])
+    calibration = calibrate(roadmap, latents, np.full((240, 2), 0.001))
+    tight, broad = (int(roadmap.nearest_node(c)) for c in centres)
+    assert calibration.node_thresholds[tight] * 10 < calibration.node_thresholds[broad]
+    offset = np.array([0.5, 0.5, 0, 0])  # L1 1.0: the broad region's images lie this far
+    near_tight, near_broad = match(roadmap, calibration, centres + offset, np.full((2, 2), 0.001))
+    assert not near_tight.known and near_tight.node == tight
+    assert near_broad.known and near_broad.node == broad
+    assert calibration.threshold > 1.0  # the pooled threshold would have known both
 
 
 def test_the_planner_refuses_an_unknown_start_before_searching(chain):
@@ -104,7 +147,10 @@ def test_a_calibration_round_trips_and_bad_files_are_named(chain, tmp_path):
     (tmp_path / "match.json").write_text(json.dumps({**document, "recon_threshold": -1}))
     with pytest.raises(MatchError, match="recon_threshold must be a positive"):
         load_calibration(tmp_path, roadmap)
-    (tmp_path / "match.json").write_text(json.dumps({**document, "version": 1}))
+    (tmp_path / "match.json").write_text(json.dumps({**document, "node_thresholds": [1.0]}))
+    with pytest.raises(MatchError, match="one per roadmap node"):
+        load_calibration(tmp_path, roadmap)
+    (tmp_path / "match.json").write_text(json.dumps({**document, "version": 2}))
     with pytest.raises(MatchError, match="calibrate the model again"):
         load_calibration(tmp_path, roadmap)
     (tmp_path / "match.json").unlink()

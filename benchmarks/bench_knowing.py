@@ -1,0 +1,261 @@
+"""Knowing an image (issue 21): how many unseen test images a model knows, and how many images
+of each foreign kind it refuses, with the scores' distributions as a figure.
+
+Usage:
+    .venv/bin/python benchmarks/bench_knowing.py --model models/box_stacking \
+        --test data/box_stacking/test --foreign data/cloth_folding/test \
+        [--per-kind 500] [--seed 0] [--json runs/knowing/box_stacking.json]
+    .venv/bin/python benchmarks/bench_knowing.py --figure docs/knowing.png runs/knowing/*.json
+
+Foreign kinds are made from the model's own test images (uniform noise, solid frames, colour
+inversion, rotation by 180 degrees, a shift by a third of the frame rolled round or padded with
+the edge, half the frame covered, under- and over-exposure), taken from other tasks' datasets
+(`--foreign`, resized to the model's size where they differ) and, for box stacking, rendered
+from modified scenes: a box missing, a fifth box of a new colour, a second red box. Prints one
+markdown table (kind, images, known or refused share, lowest and median score) and writes every
+score to the JSON file, from which `--figure` draws.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from services.planner import knowing
+from services.planner.build import load_model
+from services.planner.eval_vfm import load_test_images
+from services.planner.plan import VisualPlanner
+from shared.appearance import manifest_appearance
+from shared.dataset import load_dataset
+
+TERMS = ("distance", "whole image", "worst patch")
+Kind = Callable[[np.ndarray, np.random.Generator], np.ndarray]
+
+
+def _shift(images: np.ndarray, rng: np.random.Generator, roll: bool) -> np.ndarray:
+    """Each image moved by a third of the frame along a drawn axis and direction."""
+    out = np.empty_like(images)
+    third = images.shape[1] // 3
+    for k, image in enumerate(images):
+        axis, sign = int(rng.integers(2)), int(rng.choice([-1, 1]))
+        moved = np.roll(image, sign * third, axis=axis)
+        if not roll:  # what enters the frame repeats the edge it came from
+            index = [slice(None)] * 3
+            edge = [slice(None)] * 3
+            index[axis] = slice(0, third) if sign > 0 else slice(-third, None)
+            edge[axis] = slice(0, 1) if sign > 0 else slice(-1, None)
+            moved[tuple(index)] = image[tuple(edge)]
+        out[k] = moved
+    return out
+
+
+def _half_covered(images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A random half (top, bottom, left or right) covered by one drawn colour."""
+    out = images.copy()
+    half = images.shape[1] // 2
+    for image in out:
+        side = int(rng.integers(4))
+        cover = rng.integers(0, 256, 3, dtype=np.uint8)
+        area = [slice(None, half), slice(half, None)][side % 2]
+        if side < 2:
+            image[area] = cover
+        else:
+            image[:, area] = cover
+    return out
+
+
+def _exposed(gain: float, offset: float) -> Kind:
+    def expose(images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return np.clip(images.astype(np.float32) * gain + offset, 0, 255).astype(np.uint8)
+
+    return expose
+
+
+TRANSFORMS: dict[str, Kind] = {
+    "uniform noise": lambda x, rng: rng.integers(0, 256, x.shape, dtype=np.uint8),
+    "solid frame": lambda x, rng: np.broadcast_to(
+        rng.integers(0, 256, (len(x), 1, 1, 3), dtype=np.uint8), x.shape
+    ).copy(),
+    "colour inversion": lambda x, rng: 255 - x,
+    "rotation 180": lambda x, rng: x[:, ::-1, ::-1].copy(),
+    "third shift, rolled": lambda x, rng: _shift(x, rng, roll=True),
+    "third shift, edge-padded": lambda x, rng: _shift(x, rng, roll=False),
+    "half covered": _half_covered,
+    "under-exposed (x0.2)": _exposed(0.2, 0.0),
+    "over-exposed (x2.5 + 60)": _exposed(2.5, 60.0),
+}
+
+
+def _resized(images: np.ndarray, size: int) -> np.ndarray:
+    if images.shape[1] == size:
+        return images
+    return np.stack(
+        [np.asarray(Image.fromarray(i).resize((size, size), Image.BILINEAR)) for i in images]
+    )
+
+
+def _box_scenes(
+    boxes: tuple[str, ...], count: int, size: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Renders of drawn states of a box-stacking scene with these boxes (a modified scene)."""
+    from services.sim.box_stacking import scene
+    from services.sim.box_stacking.world import BoxStackingWorld
+    from shared.tasks.box_stacking import BoxStacking, BoxStackingConfig
+
+    looks = scene._BOX_LOOKS
+    extra = {"purple": 'builtin="flat" rgb1=".55 .2 .7" rgb2=".55 .2 .7"', "red2": looks["red"]}
+    added = [name for name in extra if name in boxes and name not in looks]
+    looks.update({name: extra[name] for name in added})
+    try:
+        task = BoxStacking(BoxStackingConfig(boxes=boxes))
+        with BoxStackingWorld(task, size) as world:
+            images = []
+            for _ in range(count):
+                world.reset(task.sample_state(rng), rng)
+                images.append(world.render())
+        return np.stack(images)
+    finally:
+        for name in added:
+            del looks[name]
+
+
+def foreign_kinds(
+    task: str, test: np.ndarray, others: list[Path], per_kind: int, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
+    kinds = {}
+    for name, transform in TRANSFORMS.items():
+        kinds[name] = transform(test[rng.choice(len(test), per_kind, replace=False)], rng)
+    size = test.shape[1]
+    for other in others:
+        data = load_dataset(other)
+        images = np.concatenate([data.image1, data.image2])
+        picked = images[rng.choice(len(images), min(per_kind, len(images)), replace=False)]
+        look = manifest_appearance(data.manifest)
+        label = f"{data.task} images" + ("" if look == "clean" else f" ({look})")
+        kinds[label] = _resized(picked, size)
+    if task == "box_stacking":
+        four = ("red", "green", "blue", "yellow")
+        missing = [tuple(b for b in four if b != gone) for gone in four]
+        share = -(-per_kind // len(missing))
+        kinds["a box missing"] = np.concatenate(
+            [_box_scenes(boxes, share, size, rng) for boxes in missing]
+        )[:per_kind]
+        kinds["a fifth box (purple)"] = _box_scenes((*four, "purple"), per_kind, size, rng)
+        kinds["a second red box"] = _box_scenes((*four, "red2"), per_kind, size, rng)
+    return kinds
+
+
+def scores(planner: VisualPlanner, images: np.ndarray) -> np.ndarray:
+    """(N, 3): each term over its threshold (distance, whole image, worst patch)."""
+    assert planner.calibration is not None
+    z, errors = planner.look(images)
+    return knowing.ratios(planner.roadmap, planner.calibration, z, errors)[1]
+
+
+def run(args: argparse.Namespace) -> dict:
+    started = time.perf_counter()
+    vae, vae_config, roadmap, _ = load_model(args.model)
+    calibration = knowing.load_calibration(args.model / "roadmap", roadmap)
+    planner = VisualPlanner(vae, roadmap, calibration)
+    test, _, task = load_test_images(args.test)
+    rng = np.random.default_rng(args.seed)
+    result = {
+        "model": str(args.model),
+        "task": task,
+        "test": str(args.test),
+        "appearance": vae_config["dataset"].get("appearance", "clean"),
+        "seed": args.seed,
+        "calibration": calibration.to_json(),
+        "terms": list(TERMS),
+        "kinds": {"unseen test images": scores(planner, test).tolist()},
+    }
+    for name, images in foreign_kinds(task, test, args.foreign, args.per_kind, rng).items():
+        result["kinds"][name] = scores(planner, images).tolist()
+    result["seconds"] = time.perf_counter() - started
+    return result
+
+
+def table(result: dict) -> str:
+    lines = [
+        f"{result['model']} ({result['task']}, test {result['test']}):\n",
+        "| images | n | known | refused | lowest score | median score | refused by each term: "
+        + ", ".join(TERMS)
+        + " |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, values in result["kinds"].items():
+        terms = np.asarray(values)
+        s = terms.max(1)
+        known = 100 * float((s <= 1).mean())
+        each = " / ".join(f"{100 * float(x):.0f}" for x in (terms > 1).mean(0))
+        lines.append(
+            f"| {name} | {len(s)} | {known:.2f}% | {100 - known:.2f}% | {s.min():.2f} | "
+            f"{np.median(s):.2f} | {each} |"
+        )
+    return "\n".join(lines)
+
+
+def figure(paths: list[Path], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = [json.loads(p.read_text()) for p in paths]
+    kinds = list(dict.fromkeys(name for r in results for name in r["kinds"]))
+    fig, axes = plt.subplots(1, len(results), figsize=(5.2 * len(results), 0.38 * len(kinds) + 1.4),
+                             sharey=True, squeeze=False)  # fmt: skip
+    for ax, r in zip(axes[0], results, strict=True):
+        for y, name in enumerate(kinds):
+            if name not in r["kinds"]:
+                continue
+            s = np.clip(np.asarray(r["kinds"][name]).max(1), 1e-2, 1e4)
+            jitter = np.random.default_rng(y).uniform(-0.3, 0.3, len(s))
+            colour = "tab:green" if y == 0 else "tab:red"
+            ax.scatter(s, y + jitter, s=2, alpha=0.35, color=colour, linewidths=0)
+        ax.axvline(1.0, color="k", lw=1, ls="--")
+        ax.set_xscale("log")
+        ax.set_title(f"{r['model']} ({r['appearance']})", fontsize=10)
+        ax.set_xlabel("score (known while <= 1)")
+    axes[0][0].set_yticks(range(len(kinds)), kinds, fontsize=8)
+    axes[0][0].invert_yaxis()
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path)
+    parser.add_argument("--test", type=Path)
+    parser.add_argument("--foreign", type=Path, nargs="*", default=[])
+    parser.add_argument("--per-kind", type=int, default=500)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path)
+    parser.add_argument("--figure", type=Path, help="draw from the JSON files given after it")
+    parser.add_argument("results", type=Path, nargs="*")
+    args = parser.parse_args()
+    if args.figure:
+        figure(args.results, args.figure)
+        print(f"wrote {args.figure}")
+        return
+    if args.model is None or args.test is None:
+        parser.error("--model and --test are needed (or --figure with JSON files)")
+    result = run(args)
+    print(table(result))
+    print(f"\n{result['seconds']:.0f} s")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result) + "\n")
+
+
+if __name__ == "__main__":
+    main()
