@@ -36,6 +36,16 @@ def test_most_confident_prefers_the_surest_first_action():
     assert most_confident(plans).nodes == [0, 2]
 
 
+def test_a_plans_confidence_is_the_product_of_its_actions():
+    from shared.tasks.box_stacking import BoxStacking, Cell, Move
+
+    move = Move(Cell(0, 0), Cell(0, 1))
+    plan = VisualActionPlan([0, 1, 2], [], [move, move], [0.9, 0.5])
+    assert plan.confidence == pytest.approx(0.45)
+    assert plan.to_json(BoxStacking())["confidence"] == pytest.approx(0.45)
+    assert VisualActionPlan([3], [], [], []).confidence == 1.0  # already at the goal
+
+
 def test_sheet_marks_pick_and_release():
     from shared.tasks.box_stacking import Cell, Move
 
