@@ -19,8 +19,8 @@ class VisualActionPlan:
 
     @property
     def confidence(self) -> float:
-        """The product of the actions' confidences (1 without actions): how often plans at a
-        confidence were valid on held-out data is in the README's reliability table."""
+        """The product of the actions' confidences (1 without actions): the APN's view only;
+        the README's reliability table shows it says nothing of the nodes."""
         return float(np.prod(self.confidences)) if self.confidences else 1.0
 
     def to_json(self, task: Task) -> dict[str, Any]:

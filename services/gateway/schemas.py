@@ -79,8 +79,8 @@ class Plan(BaseModel):
     nodes: list[int]
     confidences: list[float] = Field(description="the APN's confidence in each action")
     confidence: float = Field(
-        description="the product of the actions' confidences; the README's reliability table "
-        "says how often plans at a confidence were valid on held-out data"
+        description="the product of the actions' confidences: how sure the APN is of the "
+        "actions, not whether the nodes show the right states (README, 'Plan confidence')"
     )
 
 
