@@ -26,7 +26,7 @@ from tqdm import tqdm
 from services.data.pairs import DataImportError, count_lines, pairs_file, read_rows
 from shared import dataset as ds
 from shared.images import ImageError, decode_image
-from shared.tasks import task_names
+from shared.tasks import get_task, task_names
 from shared.tasks.base import InvalidActionError
 from shared.tasks.declared import DataTask, DeclarationError, TaskDeclaration
 from shared.tasks.spec import NULL
@@ -81,15 +81,20 @@ def read_declaration(source: Path, name: str | None) -> TaskDeclaration:
     if name is not None and isinstance(obj, dict):
         obj = {**obj, "name": name}
     try:
-        declaration = TaskDeclaration.from_json(obj)
+        return TaskDeclaration.from_json(obj)
     except DeclarationError as exc:
         raise DataImportError(f"{path}: {exc}") from None
-    if declaration.name in task_names():
+
+
+def check_name(source: Path, declaration: TaskDeclaration) -> None:
+    """A built-in task's name is that task only with its actions (what `lsr data export` of
+    its dataset writes, so that the round trip needs no flags); otherwise it clashes."""
+    name = declaration.name
+    if name in task_names() and get_task(name).spec.action != declaration.spec.action:
         raise DataImportError(
-            f"{path}: name {declaration.name!r} clashes with a built-in task "
-            f"({task_names()}); rename it, or import with --name NEW"
+            f"{source / TASK_FILE}: name {name!r} clashes with a built-in task "
+            f"({task_names()}) whose actions differ; rename it, or import with --name NEW"
         )
-    return declaration
 
 
 def _image_path(source: Path, where: str, key: str, relative: str) -> Path:
@@ -187,6 +192,7 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
     bar.close()
     if found.rows == 0:
         raise DataImportError(f"{pairs}: no rows")
+    check_name(source, declaration)  # after every file: a user fixes all there is at once
     found.images = len(checked_images)
     if not splits_given[0]:
         _split_by_episode(found, cfg)
