@@ -31,7 +31,7 @@ def main() -> None:
     model, config = load_vae(args.vae)
     metric = default_metric(config)
     train = load_dataset(args.train)
-    mu1, mu2 = encode_pairs(args.vae, train)
+    mu1, mu2 = encode_pairs(model, train)
     test = load_dataset(args.test)
     z_test = interleave(encode_images(model, test.image1)[0], encode_images(model, test.image2)[0])
     test_states = interleave(test.state1, test.state2)

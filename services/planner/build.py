@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from services.encoder.checkpoint import encode_images, load_vae, read_vae_config
+from services.encoder.model import VAE
 from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, calibrate, reconstruction_errors, save_calibration
@@ -27,18 +28,18 @@ def default_metric(vae_config: dict[str, Any]) -> str:
     return "l1" if metric == "none" else metric
 
 
-def encode_pairs(vae_dir: Path | str, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    model, config = load_vae(vae_dir)
-    if config["model"]["image_size"] != data.image_size:
+def encode_pairs(model: VAE, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """The encoder means of image1 and image2 of every tuple."""
+    if model.config.image_size != data.image_size:
         raise ValueError(
-            f"the VAE takes {config['model']['image_size']} px images, "
+            f"the VAE takes {model.config.image_size} px images, "
             f"the dataset has {data.image_size} px"
         )
     return encode_images(model, data.image1)[0], encode_images(model, data.image2)[0]
 
 
 def calibrate_and_seal(
-    vae_dir: Path | str,
+    model: VAE,
     data: Dataset,
     roadmap: Roadmap,
     mu1: np.ndarray,
@@ -47,7 +48,6 @@ def calibrate_and_seal(
 ) -> Calibration:
     """What the roadmap knows, from every training image (mu1, mu2: the latents of image1 and
     image2), written beside the roadmap and sealed with it: build-roadmap and lsr calibrate."""
-    model, _ = load_vae(vae_dir)
     pairs = ((data.image1, mu1), (data.image2, mu2))
     errors = np.concatenate([reconstruction_errors(model, x, mu) for x, mu in pairs])
     calibration = calibrate(roadmap, np.concatenate([mu1, mu2]), errors)
@@ -66,12 +66,13 @@ def build_from_dataset(
 ) -> dict[str, Any]:
     started = time.perf_counter()
     data = load_dataset(data_dir)
-    mu1, mu2 = encode_pairs(vae_dir, data)
+    model, _ = load_vae(vae_dir)
+    mu1, mu2 = encode_pairs(model, data)
     encoded = time.perf_counter()
     roadmap = build_roadmap(mu1, mu2, data.a, config)
     built = time.perf_counter()
     roadmap.save(out_dir)
-    calibration = calibrate_and_seal(vae_dir, data, roadmap, mu1, mu2, out_dir)
+    calibration = calibrate_and_seal(model, data, roadmap, mu1, mu2, out_dir)
     purity: dict[str, Any] = {}
     if data.spec.state is not None:  # node labels need the states the data declares
         labels = label_nodes(
@@ -102,9 +103,10 @@ def calibrate_model(model_dir: Path | str, data_dir: Path | str) -> dict[str, An
     if data.task != task:
         raise ValueError(f"{data_dir} holds {data.task!r} data, the model plans {task!r}")
     roadmap = Roadmap.load(model_dir / "roadmap")
-    mu1, mu2 = encode_pairs(model_dir / "vae", data)
+    model, _ = load_vae(model_dir / "vae")
+    mu1, mu2 = encode_pairs(model, data)
     roadmap_dir = model_dir / "roadmap"
-    return calibrate_and_seal(model_dir / "vae", data, roadmap, mu1, mu2, roadmap_dir).to_json()
+    return calibrate_and_seal(model, data, roadmap, mu1, mu2, roadmap_dir).to_json()
 
 
 def load_labels(roadmap_dir: Path | str, task_name: str) -> NodeLabels:
