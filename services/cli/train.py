@@ -44,8 +44,6 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         beta_max=args.beta_max,
         clip_grad_norm=args.clip_grad_norm,
         action_on=args.action_on,
-        jitter_gain=args.jitter_gain,
-        jitter_shift=args.jitter_shift,
         seed=args.seed,
         threads=args.threads,
         device=args.device,
@@ -124,15 +122,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="sample",
         choices=["sample", "mean"],
         help="latents the action term sees: reparameterised samples or means",
-    )
-    vae.add_argument(
-        "--jitter-gain",
-        type=float,
-        default=0.0,
-        help="each training image brightened or dimmed by up to this fraction (0: none)",
-    )
-    vae.add_argument(
-        "--jitter-shift", type=int, default=0, help="each training image shifted up to N px"
     )
     vae.add_argument("--seed", type=int, default=0)
     vae.add_argument("--threads", type=int, default=2)

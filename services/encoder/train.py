@@ -63,13 +63,6 @@ class TrainConfig:
     # The reference applies the action term to reparameterised samples. With a collapsed
     # posterior, sample noise alone can exceed d_m (L2: ~11 in 64-D), so "mean" is offered too.
     action_on: Literal["sample", "mean"] = "sample"
-    # Look jitter: each training image, on its own, gets a brightness gain within 1 +-
-    # jitter_gain (each channel +- a quarter of that) and a shift of up to jitter_shift pixels.
-    # Under a camera's appearance a state's images differ most between episodes (lights,
-    # camera pose), which no-action pairs never span; jittered pairs make the action term
-    # ask for latents that ignore such differences. 0 and 0: the paper's training.
-    jitter_gain: float = 0.0
-    jitter_shift: int = 0
 
     def __post_init__(self) -> None:
         if self.metric not in ("l1", "l2", "inf", "none"):
@@ -87,10 +80,6 @@ class TrainConfig:
             raise ValueError(f"action_on must be sample or mean, got {self.action_on!r}")
         if self.dm is not None and self.dm <= 0:
             raise ValueError(f"dm must be positive, got {self.dm}")
-        if not 0.0 <= self.jitter_gain < 1.0:
-            raise ValueError(f"jitter_gain must be in [0, 1), got {self.jitter_gain}")
-        if self.jitter_shift < 0:
-            raise ValueError(f"jitter_shift must be at least 0, got {self.jitter_shift}")
 
     def total_steps(self, pairs: int) -> int:
         """Steps of the run on a dataset of `pairs` tuples."""
@@ -129,21 +118,6 @@ def schedules(cfg: TrainConfig, progress: float) -> tuple[float, float]:
         else cfg.gamma_start + (cfg.gamma_end - cfg.gamma_start) * progress
     )
     return beta, gamma
-
-
-def jitter(x: torch.Tensor, gain: float, shift: int, generator: torch.Generator) -> torch.Tensor:
-    """Each image (B, 3, H, W) in [0, 1] brightened or dimmed and shifted on its own; edges
-    repeat into the shifted-in border."""
-    b, _, h, w = x.shape
-    if gain:
-        draws = torch.rand(b, 4, generator=generator) * 2 - 1
-        gains = (1 + gain * draws[:, :1]) * (1 + 0.25 * gain * draws[:, 1:])
-        x = (x * gains[:, :, None, None].to(x.device)).clamp_(0.0, 1.0)
-    if shift:
-        padded = torch.nn.functional.pad(x, (shift,) * 4, mode="replicate")
-        offsets = torch.randint(0, 2 * shift + 1, (b, 2), generator=generator).tolist()
-        x = torch.stack([padded[i, :, r : r + h, c : c + w] for i, (r, c) in enumerate(offsets)])
-    return x
 
 
 def vae_terms(
@@ -205,7 +179,6 @@ def train_vae(
     drop_step = round(cfg.lr_drop * total_steps)
     monitor = np.random.default_rng(cfg.seed).permutation(n)[: cfg.monitor_pairs]
     batches = minibatches(n, cfg.batch_size, torch.Generator().manual_seed(cfg.seed))
-    looks = torch.Generator().manual_seed(cfg.seed + 1)
     log_path = out_dir / "log.jsonl"
     log_path.write_text("")
     started = time.perf_counter()
@@ -224,8 +197,6 @@ def train_vae(
         b = len(idx)
         beta, gamma = schedules(cfg, step / total_steps)
         x = to_tensor(torch.cat([images1[idx], images2[idx]]).to(device))
-        if cfg.jitter_gain or cfg.jitter_shift:
-            x = jitter(x, cfg.jitter_gain, cfg.jitter_shift, looks)
         sse, kl, z, mu = vae_terms(model, x.contiguous(memory_format=torch.channels_last))
         if cfg.action_on == "mean":
             z = mu
