@@ -65,6 +65,7 @@ class RobotPlanner:
                 images=[],
                 actions=[self.task.parse_action(a) for a in p["actions"]],
                 confidences=p["confidences"],
+                supports=p["supports"],
             )
             for p in published["plans"]
         ]

@@ -170,7 +170,7 @@ class PlanningClient:
                     self.node_images.put(key, image)
                 images[node] = image
         plans = []
-        for path in found.paths:
+        for path, supports in zip(found.paths, found.supports, strict=True):
             pairs = [proposed[(a, b)] for a, b in itertools.pairwise(path)]
             if any(action is None for action, _ in pairs):
                 continue  # the APN saw no action between two nodes: not a plan a robot can run
@@ -180,6 +180,7 @@ class PlanningClient:
                     images=[images[n] for n in path] if include_images else [],
                     actions=[action for action, _ in pairs],
                     confidences=[confidence for _, confidence in pairs],
+                    supports=supports,
                 )
             )
         reason = None if plans else "the APN proposed no action for a step of every path"

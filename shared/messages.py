@@ -100,6 +100,7 @@ class PathsRequest(TaskMessage):
 
 class PathsReply(Message):
     paths: list[list[int]]  # roadmap node ids, start to goal, all shortest paths (bounded)
+    supports: list[list[int]]  # per path, the training action pairs behind each step
     node_ids: list[int]  # every node on some path, once
     node_latents: WireArray  # float32 (len(node_ids), D)
     model_id: str  # the planner's model: callers may keep node images decoded for it

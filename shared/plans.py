@@ -16,6 +16,7 @@ class VisualActionPlan:
     images: list[np.ndarray]  # decoded node images, one more than actions (empty if not asked)
     actions: list[Any]  # the task's actions between consecutive images
     confidences: list[float]  # the APN's confidence in each action
+    supports: list[int]  # training action pairs behind each step (the roadmap edges' weights)
 
     @property
     def confidence(self) -> float:
@@ -23,12 +24,22 @@ class VisualActionPlan:
         the README's reliability table shows it says nothing of the nodes."""
         return float(np.prod(self.confidences)) if self.confidences else 1.0
 
+    @property
+    def support(self) -> float:
+        """How well the training data backs every step: the product over steps of (w + 1) /
+        (w + 2), Laplace's rule of succession for a step seen w times and never seen to fail;
+        so it falls with the plan's length and rises with each step's evidence (README,
+        'Plan confidence', for how often plans at each support are valid)."""
+        return float(np.prod([(w + 1) / (w + 2) for w in self.supports]))
+
     def to_json(self, task: Task) -> dict[str, Any]:
         return {
             "nodes": self.nodes,
             "actions": [task.action_to_json(a) for a in self.actions],
             "confidences": [round(c, 6) for c in self.confidences],
             "confidence": round(self.confidence, 6),
+            "supports": self.supports,
+            "support": round(self.support, 6),
         }
 
 

@@ -73,6 +73,7 @@ class ActionPlanner:
                     images=self.planner.node_images(latent_plan.nodes),
                     actions=[self.task.array_to_action(a) for a in arrays],
                     confidences=[float(c) for c in confidences],
+                    supports=self.planner.roadmap.supports(latent_plan.nodes),
                 )
             )
         return plans

@@ -347,6 +347,19 @@ class Roadmap:
         indptr, indices = self._neighbour_arrays()
         return indices[indptr[i] : indptr[i + 1]].tolist()
 
+    def supports(self, path: list[int]) -> list[int]:
+        """The training action pairs behind each step of a path (its edges' weights)."""
+        ids = np.asarray(path, dtype=np.int64)
+        if len(ids) < 2:
+            return []
+        lo, hi = np.minimum(ids[:-1], ids[1:]), np.maximum(ids[:-1], ids[1:])
+        k = self.num_nodes
+        keys = self.edges[:, 0] * k + self.edges[:, 1]
+        at = np.searchsorted(keys, lo * k + hi)  # edges are sorted and unique
+        if (at >= len(keys)).any() or (keys[np.minimum(at, len(keys) - 1)] != lo * k + hi).any():
+            raise RoadmapError(f"path {path} takes a step that is not an edge")
+        return self.edge_weights[at].tolist()
+
     def shortest_paths(self, src: int, dst: int, max_paths: int = 16) -> list[list[int]]:
         """All shortest paths by hop count from src to dst, at most max_paths of them.
 

@@ -62,6 +62,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         except UnknownImageError as refused:
             return PathsReply(
                 paths=[],
+                supports=[],
                 node_ids=[],
                 node_latents=WireArray.of(np.zeros((0, dim), np.float32)),
                 model_id=context.model.model_id,
@@ -73,6 +74,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         node_ids = sorted({n for path in found for n in path})
         return PathsReply(
             paths=found,
+            supports=[roadmap.supports(p) for p in found],
             node_ids=node_ids,
             node_latents=WireArray.of(roadmap.nodes[node_ids].astype(np.float32).reshape(-1, dim)),
             model_id=context.model.model_id,

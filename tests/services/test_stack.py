@@ -109,6 +109,11 @@ def assert_plans_lead_from(
             state = task.apply(state, task.parse_action(action))  # raises on an illegal move
         assert state == task.parse_state(goal)
         assert len(plan["nodes"]) == len(plan["actions"]) + 1
+        assert len(plan["supports"]) == len(plan["actions"])
+        assert all(w >= 1 for w in plan["supports"])
+        assert plan["support"] == pytest.approx(
+            np.prod([(w + 1) / (w + 2) for w in plan["supports"]]), abs=1e-6
+        )
         if images:
             assert len(plan["images"]) == len(plan["actions"]) + 1
             first = Image.open(io.BytesIO(base64.b64decode(plan["images"][0])))
@@ -422,6 +427,7 @@ def forged_paths(_: bytes) -> PathsReply:
     """What an impostor would answer: a path that a robot must never execute."""
     return PathsReply(
         paths=[[0, 1]],
+        supports=[[1]],
         node_ids=[0, 1],
         node_latents=WireArray.of(np.zeros((2, 64), np.float32)),
         model_id="forged",

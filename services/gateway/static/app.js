@@ -428,10 +428,10 @@ async function plan() {
 }
 
 function planView(p, k, marks, size) {
-  const total = p.confidences.reduce((a, b) => a * b, 1);
   const head = el("h3", { text: `Plan ${k + 1}: ${p.actions.length} action` +
-    (p.actions.length === 1 ? "" : "s") + (p.actions.length ? `, APN confidence ${total.toFixed(3)}` +
-      ` (product; lowest ${Math.min(...p.confidences).toFixed(3)})` : "") });
+    (p.actions.length === 1 ? "" : "s") + (p.actions.length ? `, support ${p.support.toFixed(2)}` +
+      ` (fewest training pairs behind a step: ${Math.min(...p.supports)}),` +
+      ` APN confidence ${p.confidence.toFixed(3)}` : "") });
   const show = el("button", { type: "button", text: "Show on the roadmap",
     onclick: () => { ui.selected = k; highlightPath(); } });
   const strip = el("div", { class: "strip" });

@@ -29,9 +29,9 @@ def test_plans_have_one_action_per_step(tiny_model):
 
 def test_most_confident_prefers_the_surest_first_action():
     plans = [
-        VisualActionPlan([0, 1], [], ["a"], [0.6]),
-        VisualActionPlan([0, 2], [], ["b"], [0.9]),
-        VisualActionPlan([0, 3], [], ["c"], [0.9]),
+        VisualActionPlan([0, 1], [], ["a"], [0.6], [1]),
+        VisualActionPlan([0, 2], [], ["b"], [0.9], [1]),
+        VisualActionPlan([0, 3], [], ["c"], [0.9], [1]),
     ]
     assert most_confident(plans).nodes == [0, 2]
 
@@ -40,17 +40,31 @@ def test_a_plans_confidence_is_the_product_of_its_actions():
     from shared.tasks.box_stacking import BoxStacking, Cell, Move
 
     move = Move(Cell(0, 0), Cell(0, 1))
-    plan = VisualActionPlan([0, 1, 2], [], [move, move], [0.9, 0.5])
+    plan = VisualActionPlan([0, 1, 2], [], [move, move], [0.9, 0.5], [1, 1])
     assert plan.confidence == pytest.approx(0.45)
     assert plan.to_json(BoxStacking())["confidence"] == pytest.approx(0.45)
-    assert VisualActionPlan([3], [], [], []).confidence == 1.0  # already at the goal
+    assert VisualActionPlan([3], [], [], [], []).confidence == 1.0  # already at the goal
+
+
+def test_a_plans_support_falls_with_length_and_rises_with_evidence():
+    from shared.tasks.box_stacking import BoxStacking, Cell, Move
+
+    move = Move(Cell(0, 0), Cell(0, 1))
+    seen_once = VisualActionPlan([0, 1], [], [move], [1.0], [1])
+    assert seen_once.support == pytest.approx(2 / 3)
+    two_steps = VisualActionPlan([0, 1, 2], [], [move, move], [1.0, 1.0], [1, 1])
+    assert two_steps.support == pytest.approx(4 / 9)
+    assert VisualActionPlan([0, 1], [], [move], [1.0], [98]).support == pytest.approx(0.99)
+    document = two_steps.to_json(BoxStacking())
+    assert document["supports"] == [1, 1] and document["support"] == pytest.approx(4 / 9, abs=1e-6)
+    assert VisualActionPlan([3], [], [], [], []).support == 1.0
 
 
 def test_sheet_marks_pick_and_release():
     from shared.tasks.box_stacking import Cell, Move
 
     images = [np.full((32, 32, 3), 200, np.uint8)] * 2
-    plan = VisualActionPlan([4, 7], images, [Move(Cell(0, 0), Cell(1, 2))], [0.99])
+    plan = VisualActionPlan([4, 7], images, [Move(Cell(0, 0), Cell(1, 2))], [0.99], [1])
 
     def cells(move):
         return [(8.0 + 8 * c.col, 24.0 - 8 * c.row) for c in move]
@@ -67,7 +81,7 @@ def test_sheet_draws_a_fold_as_an_arrow_from_pick_to_release():
 
     images = [np.full((32, 32, 3), 200, np.uint8)] * 2
     fold = ClothAction(Pixel(4, 4), Pixel(28, 28), 0)
-    plan = VisualActionPlan([0, 1], images, [fold], [0.9])
+    plan = VisualActionPlan([0, 1], images, [fold], [0.9], [1])
     sheet = plan_sheet(plan, lambda a: ((4.5, 4.5), (28.5, 28.5)), arrows=True, scale=3)
     green = (sheet[:, :, 1] > 150) & (sheet[:, :, 0] < 100) & (sheet[:, :, 2] < 100)
     on_diagonal = [green[k, k] for k in range(30, 80)]  # the shaft runs along the diagonal

@@ -268,6 +268,21 @@ def test_shortest_paths_are_all_shortest_paths_in_order():
     assert grid.shortest_paths(0, 11, max_paths=100) == paths  # deterministic
 
 
+def test_supports_are_the_edge_weights_along_a_path_either_way():
+    grid = grid_roadmap(2, 3)  # 0 1 2 / 3 4 5
+    grid.edge_weights[:] = np.arange(1, len(grid.edges) + 1)
+    weight = {tuple(e): int(w) for e, w in zip(grid.edges.tolist(), grid.edge_weights, strict=True)}
+    path = [0, 1, 4, 5]
+    expected = [weight[(0, 1)], weight[(1, 4)], weight[(4, 5)]]
+    assert grid.supports(path) == expected
+    assert grid.supports(path[::-1]) == expected[::-1]
+    assert grid.supports([4]) == []
+    with pytest.raises(RoadmapError, match="not an edge"):
+        grid.supports([0, 4])
+    with pytest.raises(RoadmapError, match="not an edge"):
+        grid.supports([5, 6])  # past the last node id
+
+
 def test_shortest_paths_unconnected_and_errors():
     roadmap = make_roadmap([(0, 0), (1, 0), (5, 5), (6, 5)], [(0, 1), (2, 3)])
     assert roadmap.shortest_paths(0, 3) == []

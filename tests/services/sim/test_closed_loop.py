@@ -21,9 +21,9 @@ class OraclePlanner:
     def plan(self, start, goal, max_plans=8):
         task, state = self.world.task, self.world.read_state()
         if state == self.goal:
-            return [VisualActionPlan([0], [start], [], [])]
+            return [VisualActionPlan([0], [start], [], [], [])]
         best = min(task.neighbours(state), key=lambda m: optimal_moves(task, m[1], self.goal))
-        return [VisualActionPlan([0, 1], [start, goal], [best[0]], [1.0])]
+        return [VisualActionPlan([0, 1], [start, goal], [best[0]], [1.0], [1])]
 
 
 class FixedPlanner:
@@ -62,7 +62,7 @@ def test_unreachable_and_illegal_stop_the_loop(world):
     goal = state(world, [["red"], ["green", "blue"], ["yellow"]])
     rng = np.random.default_rng(1)
     assert run_episode(FixedPlanner([]), world, start, goal, rng).reason == "unreachable"
-    illegal = VisualActionPlan([0, 1], [], [Move(Cell(0, 0), Cell(0, 1))], [1.0])
+    illegal = VisualActionPlan([0, 1], [], [Move(Cell(0, 0), Cell(0, 1))], [1.0], [1])
     episode = run_episode(FixedPlanner([illegal]), world, start, goal, rng)
     assert episode.reason == "illegal_action" and episode.illegal_actions == 1
     assert episode.final_state == start and not episode.success
@@ -150,7 +150,7 @@ class NodePlanner:
         if self.lie and len(actions) > 1:
             actions = [actions[1], *actions[1:]]
         nodes = [task.all_states().index(s) for s in states]
-        return [VisualActionPlan(nodes, [], actions, [1.0] * len(actions))]
+        return [VisualActionPlan(nodes, [], actions, [1.0] * len(actions), [1] * len(actions))]
 
 
 def test_table3_counts_right_plans_and_wrong_actions(world):
@@ -188,7 +188,7 @@ class WreckingWorld(SeeingWorld):
 def test_a_world_left_in_no_state_ends_the_episode_without_a_crash(world):
     start = state(world, [["red", "green"], ["blue"], ["yellow"]])
     goal = state(world, [["red"], ["green", "blue"], ["yellow"]])
-    move = VisualActionPlan([0, 1], [], [Move(Cell(1, 0), Cell(1, 1))], [1.0])
+    move = VisualActionPlan([0, 1], [], [Move(Cell(1, 0), Cell(1, 1))], [1.0], [1])
     episode = run_episode(FixedPlanner([move]), WreckingWorld(world), start, goal,
                           np.random.default_rng(0))  # fmt: skip
     assert episode.reason.startswith("physics:") and episode.final_state is None
