@@ -167,12 +167,15 @@ def check_ends(
     z_goal: np.ndarray,
     errors: np.ndarray,
 ) -> dict[str, Match]:
-    """Both ends' matches; UnknownImageError naming the first end that is not known."""
+    """Both ends' matches; UnknownImageError naming the first end that is not known and the
+    term that refused it."""
+    _, terms = ratios(roadmap, calibration, np.stack([z_start, z_goal]), errors)
     start, goal = match(roadmap, calibration, np.stack([z_start, z_goal]), errors)
     matched = {"start": start, "goal": goal}
     end = refused_end(matched)
     if end is not None:
-        raise UnknownImageError(end, refusal(end, matched[end], calibration), matched)
+        worst = int(terms[0 if end == "start" else 1].argmax())
+        raise UnknownImageError(end, refusal(end, matched[end], calibration, worst), matched)
     return matched
 
 
@@ -221,11 +224,19 @@ def load_calibration(roadmap_dir: Path | str, roadmap: Roadmap) -> Calibration:
     return calibration
 
 
-def refusal(end: str, found: Match, calibration: Calibration) -> str:
-    """The reason a plan is refused, naming the end (`start` or `goal`) in plain words."""
+# Why an image is not known, in the order of ratios()'s terms.
+WHY = (
+    "its latent lies far from every roadmap region",
+    "the model cannot redraw it",
+    "the model cannot redraw a part of it",
+)
+
+
+def refusal(end: str, found: Match, calibration: Calibration, term: int) -> str:
+    """The reason a plan is refused, naming the end (`start` or `goal`) and the term (an
+    index into WHY) that refused it, in plain words."""
     return (
-        f"the {end} image is unlike anything this model knows: its latent lies far from the "
-        f"nearest roadmap region or the model cannot redraw it (score {found.score:.2f}; known "
-        f"up to 1, which is {calibration.factor:g} times what {100 * calibration.quantile:g}% of "
-        "training images stay within)"
+        f"the {end} image is unlike anything this model knows: {WHY[term]} (score "
+        f"{found.score:.2f}; known up to 1, which is {calibration.factor:g} times what "
+        f"{100 * calibration.quantile:g}% of training images stay within)"
     )

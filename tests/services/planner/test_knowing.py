@@ -75,6 +75,7 @@ def test_an_image_far_from_every_region_is_not_known_and_names_its_node(chain):
     with pytest.raises(UnknownImageError) as refused:
         check_ends(roadmap, calibration, centres[0], centres[1] / 2, GOOD)
     assert refused.value.end == "goal" and "goal image is unlike" in refused.value.reason
+    assert "far from every roadmap region" in refused.value.reason
     assert refused.value.match["start"].known
 
 
@@ -94,6 +95,11 @@ def test_an_image_the_model_cannot_redraw_is_not_known_even_inside_a_region(chai
         roadmap, calibration, np.stack([centres[1]] * 2), np.array([[0.0015, 0.003], [0.0015, 0.5]])
     )
     assert not covered.known and covered.score == pytest.approx(0.5 / calibration.patch_threshold)
+    for goal_errors, why in (([0.05, 0.003], "cannot redraw it"), ([0.0015, 0.5], "a part of it")):
+        with pytest.raises(UnknownImageError, match=why):
+            check_ends(
+                roadmap, calibration, centres[1], centres[1], np.array([GOOD[0], goal_errors])
+            )
 
 
 def test_a_region_is_judged_by_its_own_spread():
