@@ -118,6 +118,11 @@ class Task(ABC, Generic[State, Action]):
     def neighbours(self, state: State) -> list[tuple[Action, State]]:
         return [(a, self._apply_legal(state, a)) for a in self.legal_actions(state)]
 
+    def hidden(self, state: State) -> frozenset[str]:
+        """Parts of a state that its images cannot show (none for most tasks): evaluations
+        report plans between states that show everything apart from the rest."""
+        return frozenset()
+
     def sample_state(self, rng: np.random.Generator) -> State:
         """A state drawn uniformly; tasks that cannot enumerate their states override this."""
         states = self.all_states()

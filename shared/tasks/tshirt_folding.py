@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.tasks.folding import ClothAction, FoldingTask, Move, Pixel
+from shared.tasks.folding import ClothAction, FoldingTask, Folds, Move, Pixel
 
 FOLDS = ("left_sleeve", "right_sleeve", "left_side", "right_side", "bottom_half")
 SHORT = {"left_sleeve": "a", "right_sleeve": "b", "left_side": "L", "right_side": "R"}
@@ -142,6 +142,13 @@ class TshirtFolding(FoldingTask):
         sleeves = {sleeve: ("bottom_half", side) for sleeve, side in SIDE_OF.items()}
         sides = {side: ("bottom_half",) for side in SIDE_OF.values()}
         return {"bottom_half": ()} | sides | sleeves
+
+    def hidden(self, state: Folds) -> frozenset[str]:
+        """With the bottom half folded, a folded side's sleeve lies under it, inside the flap or
+        on it: a camera from above sees neither (README, "The T-shirt world")."""
+        if "bottom_half" not in state:
+            return frozenset()
+        return frozenset(sleeve for sleeve, side in SIDE_OF.items() if side in state)
 
     def info(self) -> dict[str, Any]:
         c = self.config

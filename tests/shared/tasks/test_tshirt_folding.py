@@ -46,6 +46,17 @@ def test_the_rules_of_the_issue():
         TASK.apply(("left_sleeve", "bottom_half"), TASK.moves["unfold", "left_sleeve"].action)
 
 
+def test_a_sleeve_under_the_folded_bottom_half_is_hidden_in_twelve_states_of_five_looks():
+    assert TASK.hidden(("left_sleeve", "left_side")) == frozenset()  # its outline shows
+    assert TASK.hidden(("left_side", "bottom_half")) == {"left_sleeve"}
+    assert TASK.hidden(("left_side", "right_side", "bottom_half")) == set(FOLDS[:2])
+    hiding = [s for s in TASK.all_states() if TASK.hidden(s)]
+    looks = {tuple(f for f in s if f not in TASK.hidden(s)) for s in hiding}
+    assert (len(hiding), len(looks)) == (12, 5)
+    cloth = get_task("cloth_folding")
+    assert not any(cloth.hidden(s) for s in cloth.all_states())  # a camera sees every fold
+
+
 def test_the_viewer_is_told_which_folds_hold_each_fold_in_place():
     """info()['locked_by'] is what the viewer disables checkboxes by: it must say exactly
     which moves the rules allow, in every state."""
