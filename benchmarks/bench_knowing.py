@@ -107,25 +107,19 @@ def _box_scenes(
     boxes: tuple[str, ...], count: int, size: int, rng: np.random.Generator
 ) -> np.ndarray:
     """Renders of drawn states of a box-stacking scene with these boxes (a modified scene)."""
-    from services.sim.box_stacking import scene
+    from services.sim.box_stacking.scene import BOX_LOOKS
     from services.sim.box_stacking.world import BoxStackingWorld
     from shared.tasks.box_stacking import BoxStacking, BoxStackingConfig
 
-    looks = scene._BOX_LOOKS
-    extra = {"purple": 'builtin="flat" rgb1=".55 .2 .7" rgb2=".55 .2 .7"', "red2": looks["red"]}
-    added = [name for name in extra if name in boxes and name not in looks]
-    looks.update({name: extra[name] for name in added})
-    try:
-        task = BoxStacking(BoxStackingConfig(boxes=boxes))
-        with BoxStackingWorld(task, size) as world:
-            images = []
-            for _ in range(count):
-                world.reset(task.sample_state(rng), rng)
-                images.append(world.render())
-        return np.stack(images)
-    finally:
-        for name in added:
-            del looks[name]
+    purple = 'builtin="flat" rgb1=".55 .2 .7" rgb2=".55 .2 .7"'
+    looks = {**BOX_LOOKS, "purple": purple, "red2": BOX_LOOKS["red"]}
+    task = BoxStacking(BoxStackingConfig(boxes=boxes))
+    with BoxStackingWorld(task, size, box_looks=looks) as world:
+        images = []
+        for _ in range(count):
+            world.reset(task.sample_state(rng), rng)
+            images.append(world.render())
+    return np.stack(images)
 
 
 def foreign_kinds(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from shared.tasks.box_stacking import BoxStackingConfig
@@ -30,9 +31,10 @@ class SceneGeometry:
         return row * self.box_size + self.half
 
 
-# Each box: a colour and a mark, so that boxes stay distinct in texture as well as hue.
-# rgb2 colours the side faces of a "flat" cube texture, so it repeats rgb1.
-_BOX_LOOKS: dict[str, str] = {
+# Each box: MuJoCo texture attributes, a colour and a mark, so that boxes stay distinct in
+# texture as well as hue. rgb2 colours the side faces of a "flat" cube texture, so it repeats
+# rgb1. A world takes others (a scene with a box it was never trained on, for one).
+BOX_LOOKS: Mapping[str, str] = {
     "red": 'builtin="flat" rgb1=".85 .12 .1" rgb2=".85 .12 .1" mark="edge" markrgb="1 1 1"',
     "green": 'builtin="checker" rgb1=".1 .65 .2" rgb2=".02 .3 .06"',
     "blue": 'builtin="flat" rgb1=".12 .25 .85" rgb2=".12 .25 .85" mark="cross" markrgb="1 1 1"',
@@ -51,15 +53,20 @@ def grip_weld(box: str) -> str:
     return f"grip_{box}"
 
 
-def build_mjcf(config: BoxStackingConfig, geometry: SceneGeometry, image_size: int) -> str:
+def build_mjcf(
+    config: BoxStackingConfig,
+    geometry: SceneGeometry,
+    image_size: int,
+    looks: Mapping[str, str] = BOX_LOOKS,
+) -> str:
     g = geometry
-    unknown = [b for b in config.boxes if b not in _BOX_LOOKS]
+    unknown = [b for b in config.boxes if b not in looks]
     if unknown:
         raise ValueError(f"no look defined for boxes {unknown}")
     assets, pads, bodies, welds = [], [], [], []
     for box in config.boxes:
         assets.append(
-            f'<texture name="tex_{box}" type="cube" width="64" height="64" {_BOX_LOOKS[box]}/>'
+            f'<texture name="tex_{box}" type="cube" width="64" height="64" {looks[box]}/>'
             f'<material name="mat_{box}" texture="tex_{box}" specular="0.1" shininess="0.1"/>'
         )
     for col in range(config.columns):

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 
 import numpy as np
 
-from services.sim.box_stacking.scene import SceneGeometry, box_body, build_mjcf, grip_weld
+from services.sim.box_stacking.scene import (
+    BOX_LOOKS,
+    SceneGeometry,
+    box_body,
+    build_mjcf,
+    grip_weld,
+)
 from services.sim.rendering import OffscreenCamera, mujoco
 from shared.tasks.base import World, WorldError
 from shared.tasks.box_stacking import BoxStacking, Move, Stacks
@@ -25,12 +32,14 @@ class BoxStackingWorld(World[Stacks, Move]):
         task: BoxStacking | None = None,
         image_size: int = 64,
         geometry: SceneGeometry | None = None,
+        box_looks: Mapping[str, str] = BOX_LOOKS,
     ) -> None:
         self.task = task or BoxStacking()
         self.image_size = image_size
         self.geometry = geometry or SceneGeometry()
         cfg = self.task.config
-        self.model = mujoco.MjModel.from_xml_string(build_mjcf(cfg, self.geometry, image_size))
+        mjcf = build_mjcf(cfg, self.geometry, image_size, box_looks)
+        self.model = mujoco.MjModel.from_xml_string(mjcf)
         self.data = mujoco.MjData(self.model)
         self.camera = OffscreenCamera(self.model, "front", image_size)
         self._column_x = np.array(
