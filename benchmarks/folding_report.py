@@ -53,6 +53,14 @@ def tables(runs: list[tuple[str, Path]], suffix: str) -> None:
                 f"{t.get('classes_separated')} / {t.get('classes')} | "
                 f"{t.get('mean_min_inter_minus_max_intra', float('nan')):+.2f} |"
             )
+    shown = [(metric, read(run / f"table1{suffix}.json")) for metric, run in runs]
+    shown = [(metric, t["shown_pairs"]) for metric, t in shown if t and "shown_pairs" in t]
+    if shown:
+        print("\nThe same pairs whose two ends show every part of their state (`Task.hidden`)\n")
+        print("| model | pairs | All | Any | Trans |\n| --- | --- | --- | --- | --- |")
+        for metric, s in shown:
+            print(f"| VAE-{NAMES[metric]} | {s['pairs']} | {s['all']:.1f} | {s['any']:.1f} | "
+                  f"{s['trans']:.1f} |")  # fmt: skip
     print("\nTable II: APN error on the unseen test action pairs, 5 seeds (paper beside)\n")
     print("| model | pick | release | total | clicks' own noise (total) | paper pick / release / "
           "total | pick px (mean) | release px (mean) | same move |")  # fmt: skip

@@ -14,6 +14,7 @@ from services.planner.build import default_metric, interleave, load_model
 from services.planner.evaluate import (
     class_distances,
     demonstrated_reach,
+    ends_show_everything,
     evaluate_interpolation,
     evaluate_plans,
     sample_test_pairs,
@@ -22,6 +23,7 @@ from services.planner.knowing import MatchError, load_calibration, match, recons
 from services.planner.roadmap import Roadmap
 from services.sim.state_reader import StateReader, load_reader, read_states
 from shared.dataset import Dataset, load_dataset
+from shared.tasks import get_task
 
 
 def load_test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]:
@@ -85,6 +87,16 @@ def run_vfm_eval(
             task_name, roadmap, labels, z_test, states, test_pairs, max_paths, node_reads
         ),
     }
+    # A state with a part no image shows (the T-shirt's sleeve under its folded half) caps any
+    # model; the pairs whose ends show everything measure the method apart from that.
+    both_shown = ends_show_everything(get_task(task_name), states, test_pairs)
+    if not both_shown.all():
+        row["pairs_showing_every_part"] = 100.0 * float(both_shown.mean())
+        if both_shown.any():
+            shown = evaluate_plans(
+                task_name, roadmap, labels, z_test, states, test_pairs[both_shown], max_paths
+            )
+            row["shown_pairs"] = {k: shown[k] for k in ("pairs", "all", "any", "trans")}
     known = _known(model_dir, vae, roadmap, images, z_test)
     if known is not None:
         # With refusal on a pair with an unknown end gets no plan: Table I over all pairs

@@ -7,7 +7,12 @@ import pytest
 
 from services.cli import main
 from services.planner.build import interleave
-from services.planner.evaluate import evaluate_plans, label_nodes, sample_test_pairs
+from services.planner.evaluate import (
+    ends_show_everything,
+    evaluate_plans,
+    label_nodes,
+    sample_test_pairs,
+)
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from services.sim.datagen import GenerateConfig, generate
 from shared.tasks import get_task
@@ -71,6 +76,15 @@ def test_a_wrong_node_label_is_caught(synthetic):
     assert result["any"] < 100.0 and result["trans"] < 100.0
 
 
+def test_pairs_with_a_hidden_end_are_told_apart():
+    shirt = get_task("tshirt_folding")
+    states = np.stack(
+        [shirt.state_to_array(s) for s in [(), ("left_side", "bottom_half"), ("bottom_half",)]]
+    )
+    pairs = np.array([[0, 2], [0, 1], [1, 2], [2, 0]])
+    assert ends_show_everything(shirt, states, pairs).tolist() == [True, False, False, True]
+
+
 def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
     model, train = tiny_model
     test = tmp_path / "test"
@@ -117,6 +131,7 @@ def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
     ):
         assert key in row
     assert 0 <= row["any"] <= 100 and row["all"] <= row["any"]
+    assert "shown_pairs" not in row  # a box-stacking image shows every part of its state
     assert 0 <= row["pairs_known"] <= 100 and 0 <= row["known_images"] <= 100
     if row["pairs_known"] > 0:  # the known pairs' plans, and Table I with refusal on
         assert row["known_pairs"]["pairs"] == round(row["pairs"] * row["pairs_known"] / 100)
