@@ -204,9 +204,7 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
                 f"{pairs}: episode {mixed!r} has rows in both train and test; a test pair must "
                 "not share an episode with training pairs"
             )
-    if "train" not in found.row_split:
-        raise DataImportError(f"{pairs}: no training rows after the split")
-    return found
+    return found  # a split column of test rows only is held-out data for a trained model
 
 
 def _episodes_in_both(found: Checked) -> str | None:
@@ -228,7 +226,8 @@ def _split_by_episode(found: Checked, cfg: ImportConfig) -> None:
 
 
 def import_dataset(cfg: ImportConfig, progress: bool = True) -> dict[str, Any]:
-    """Check everything, then write `out/train`, `out/test` (when it has rows), `out/task.json`."""
+    """Check everything, then write `out/train` and `out/test` (each when it has rows) and
+    `out/task.json`."""
     started = time.perf_counter()
     out = Path(cfg.out)
     if out.exists() and any(out.iterdir()) and not cfg.overwrite:

@@ -201,6 +201,18 @@ def test_bad_task_json_is_refused(recorded, tmp_path):
     refuse(recorded, tmp_path, r"task\.json: action\[1\] \(pick\.col\): a pixel range must lie")
 
 
+def test_an_export_of_test_data_alone_imports_as_test_data(recorded, tmp_path):
+    first = tmp_path / "first"
+    import_dataset(ImportConfig(recorded, first), progress=False)
+    exported = tmp_path / "exported"
+    export_dataset([first / "test"], exported, progress=False)
+    second = tmp_path / "second"
+    result = import_dataset(ImportConfig(exported, second), progress=False)
+    assert list(result["splits"]) == ["test"] and not (second / "train").exists()
+    a, b = load_dataset(first / "test"), load_dataset(second / "test")
+    assert np.array_equal(a.image1, b.image1) and np.array_equal(a.u, b.u)
+
+
 def test_an_episode_in_both_splits_is_refused(recorded, tmp_path):
     lines = rows(recorded)
     for i, x in enumerate(lines):
