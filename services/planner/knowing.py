@@ -152,11 +152,13 @@ def ratios(
 def match(
     roadmap: Roadmap, calibration: Calibration, latents: np.ndarray, errors: np.ndarray
 ) -> list[Match]:
-    nodes, terms = ratios(roadmap, calibration, latents, errors)
-    scores = terms.max(1)
+    return _matches(*ratios(roadmap, calibration, latents, errors))
+
+
+def _matches(nodes: np.ndarray, terms: np.ndarray) -> list[Match]:
     return [
         Match(known=bool(s <= 1.0), score=float(s), node=int(n))
-        for n, s in zip(nodes, scores, strict=True)
+        for n, s in zip(nodes, terms.max(1), strict=True)
     ]
 
 
@@ -169,8 +171,8 @@ def check_ends(
 ) -> dict[str, Match]:
     """Both ends' matches; UnknownImageError naming the first end that is not known and the
     term that refused it."""
-    _, terms = ratios(roadmap, calibration, np.stack([z_start, z_goal]), errors)
-    start, goal = match(roadmap, calibration, np.stack([z_start, z_goal]), errors)
+    nodes, terms = ratios(roadmap, calibration, np.stack([z_start, z_goal]), errors)
+    start, goal = _matches(nodes, terms)
     matched = {"start": start, "goal": goal}
     end = refused_end(matched)
     if end is not None:
