@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.encoder.checkpoint import encode_images, load_vae
 from services.planner.build import encode_pairs, interleave, load_labels
-from services.planner.evaluate import ends_show_everything, evaluate_plans, sample_test_pairs
+from services.planner.evaluate import evaluate_plans, sample_test_pairs, shows_everything
 from services.planner.regions import metric_p
 from services.planner.roadmap import Roadmap
 from shared.dataset import load_dataset
@@ -57,7 +57,7 @@ def main() -> None:
     z = interleave(encode_images(vae, test.image1)[0], encode_images(vae, test.image2)[0])
     states_array = interleave(test.state1, test.state2)
     states = [task.array_to_state(s) for s in states_array]
-    shows_all = np.array([not task.hidden(s) for s in states])
+    shows_all = shows_everything(task, states_array)
 
     def share(hits: np.ndarray) -> str:
         parts = f"{100 * hits.mean():.1f}% of {len(hits)} held-out images"
@@ -97,7 +97,7 @@ def main() -> None:
     )
 
     pairs = sample_test_pairs(len(z), args.pairs, args.seed)
-    visible = pairs[ends_show_everything(task, states_array, pairs)]
+    visible = pairs[shows_all[pairs].all(1)]
     print("\n| pairs | count | All | Any | Trans |\n| --- | --- | --- | --- | --- |")
     for name, chosen in (("all", pairs), ("both ends show every part", visible)):
         if len(chosen):

@@ -14,10 +14,10 @@ from services.planner.build import default_metric, interleave, load_model
 from services.planner.evaluate import (
     class_distances,
     demonstrated_reach,
-    ends_show_everything,
     evaluate_interpolation,
     evaluate_plans,
     sample_test_pairs,
+    shows_everything,
 )
 from services.planner.knowing import MatchError, load_calibration, match, reconstruction_errors
 from services.planner.roadmap import Roadmap
@@ -89,7 +89,7 @@ def run_vfm_eval(
     }
     # A state with a part no image shows (the T-shirt's sleeve under its folded half) caps any
     # model; the pairs whose ends show everything measure the method apart from that.
-    both_shown = ends_show_everything(get_task(task_name), states, test_pairs)
+    both_shown = shows_everything(get_task(task_name), states)[test_pairs].all(1)
     if not both_shown.all():
         row["pairs_showing_every_part"] = 100.0 * float(both_shown.mean())
         if both_shown.any():

@@ -73,8 +73,10 @@ class VisualPlanner:
         if self.calibration is not None:
             if errors is None:
                 raise ValueError("a calibrated planner needs the images' reconstruction errors")
-            knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal, errors)
-        start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
+            ends = knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal, errors)
+            start, goal = ends["start"].node, ends["goal"].node  # found while matching
+        else:
+            start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
         paths = self.roadmap.shortest_paths(start, goal, max_paths=max_paths)
         return [LatentPlan(p, self.roadmap.nodes[p]) for p in paths]
 

@@ -8,10 +8,10 @@ import pytest
 from services.cli import main
 from services.planner.build import interleave
 from services.planner.evaluate import (
-    ends_show_everything,
     evaluate_plans,
     label_nodes,
     sample_test_pairs,
+    shows_everything,
 )
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from services.sim.datagen import GenerateConfig, generate
@@ -82,7 +82,7 @@ def test_pairs_with_a_hidden_end_are_told_apart():
         [shirt.state_to_array(s) for s in [(), ("left_side", "bottom_half"), ("bottom_half",)]]
     )
     pairs = np.array([[0, 2], [0, 1], [1, 2], [2, 0]])
-    assert ends_show_everything(shirt, states, pairs).tolist() == [True, False, False, True]
+    assert shows_everything(shirt, states)[pairs].all(1).tolist() == [True, False, False, True]
 
 
 def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
