@@ -31,6 +31,7 @@ from services.planner.action_plans import ActionPlanner
 from services.planner.build import load_labels
 from services.planner.eval_vfm import load_test_images
 from services.planner.evaluate import action_leads, sample_test_pairs
+from services.planner.versions import roadmap_dir
 from shared.plans import UnknownImageError
 
 BANDS = (0.0, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.0 + 1e-9)
@@ -74,7 +75,7 @@ def main() -> None:
 
     planner = ActionPlanner.from_model_dir(args.model)
     task = planner.task
-    labels = load_labels(args.model / "roadmap", task.name)
+    labels = load_labels(roadmap_dir(args.model), task.name)
     node_states = [task.array_to_state(s) for s in labels.states]
     images, states, _ = load_test_images(args.test)
     z, errors = planner.planner.look(images)

@@ -34,6 +34,7 @@ from services.planner import knowing
 from services.planner.build import load_model
 from services.planner.eval_vfm import load_test_images
 from services.planner.plan import VisualPlanner
+from services.planner.versions import roadmap_dir
 from shared.appearance import manifest_appearance
 from shared.dataset import load_dataset
 
@@ -158,7 +159,7 @@ def scores(planner: VisualPlanner, images: np.ndarray) -> np.ndarray:
 def run(args: argparse.Namespace) -> dict:
     started = time.perf_counter()
     vae, vae_config, roadmap, _ = load_model(args.model)
-    calibration = knowing.load_calibration(args.model / "roadmap", roadmap)
+    calibration = knowing.load_calibration(roadmap_dir(args.model), roadmap)
     planner = VisualPlanner(vae, roadmap, calibration)
     test, _, task = load_test_images(args.test)
     rng = np.random.default_rng(args.seed)

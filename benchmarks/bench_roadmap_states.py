@@ -33,6 +33,7 @@ from services.planner.build import encode_pairs, interleave, load_labels
 from services.planner.evaluate import evaluate_plans, sample_test_pairs, shows_everything
 from services.planner.regions import metric_p
 from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
 from shared.dataset import load_dataset
 from shared.tasks import get_task
 
@@ -47,10 +48,10 @@ def main() -> None:
     args = parser.parse_args()
 
     vae, _ = load_vae(args.model / "vae")
-    roadmap = Roadmap.load(args.model / "roadmap")
+    roadmap = Roadmap.load(folder := roadmap_dir(args.model))
     train, test = load_dataset(args.train), load_dataset(args.test)
     task = get_task(train.task)
-    labels = load_labels(args.model / "roadmap", task.name)
+    labels = load_labels(folder, task.name)
     node_states = [task.array_to_state(s) for s in labels.states]
     points = interleave(*encode_pairs(vae, train))
     point_states = [task.array_to_state(s) for s in interleave(train.state1, train.state2)]

@@ -15,6 +15,7 @@ from pathlib import Path
 import zenoh
 
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
+from services.planner.versions import roadmap_dir
 from shared.appearance import CLEAN, trained_appearance
 from shared.bus import Operation, Server, close_quietly, new_instance_id, open_session, service_key
 from shared.checkpoint import MANIFEST, CheckpointError, verify, weights_file
@@ -40,10 +41,11 @@ class ModelInfo:
         """The model's identity, after checking each part against its manifest: a part that
         was changed or half-written since it was sealed is refused, naming the file."""
         directory = Path(directory)
+        folders = {part: directory / part for part in MODEL_PARTS}
+        if folders["roadmap"].is_dir():
+            folders["roadmap"] = roadmap_dir(directory)  # the version it plans with
         unsealed = [
-            part
-            for part in MODEL_PARTS
-            if (directory / part).is_dir() and not verify(directory / part)
+            part for part, folder in folders.items() if folder.is_dir() and not verify(folder)
         ]
         if unsealed and require_sealed:
             raise CheckpointError(

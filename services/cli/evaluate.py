@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from services.cli.common import single_thread_torch
+from services.planner.versions import roadmap_dir
 from shared.appearance import LEVELS, levels_help
 
 
@@ -51,7 +52,7 @@ def cmd_eval_apn(args: argparse.Namespace) -> int:
 
     apn_dir = args.apn or args.model / "apn"
     result = evaluate_apn(apn_dir, args.model / "vae", args.test)
-    if (args.model / "roadmap" / "labels.json").is_file():  # a task with states and rules
+    if (roadmap_dir(args.model) / "labels.json").is_file():  # a task with states and rules
         from services.planner.action_plans import model_edge_actions
 
         result["roadmap_edges"] = model_edge_actions(args.model, apn_dir)
@@ -77,13 +78,25 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
             f"task {planner.task.name!r} has no simulator (it is defined by its data): "
             "lsr eval system needs one; lsr eval vfm and lsr eval apn need none"
         )
-    labels = load_labels(Path(args.model) / "roadmap", planner.task.name)
+    labels = load_labels(roadmap_dir(args.model), planner.task.name)
     task = planner.task
     judge = PlanJudge(task, [task.array_to_state(s) for s in labels.states])
     appearance = args.appearance or trained_appearance(read_vae_config(Path(args.model) / "vae"))
+    record = None
+    if args.experience is not None:
+        from services.data.experience import ExperienceLog, Recorder
+
+        record = Recorder(ExperienceLog(args.experience, task.spec, planner.image_size), task)
     with make_world(task.name, planner.image_size, appearance=appearance) as world:
         result = evaluate_system(
-            planner, world, task, args.pairs, seed=args.seed, max_steps=args.max_steps, judge=judge
+            planner,
+            world,
+            task,
+            args.pairs,
+            seed=args.seed,
+            max_steps=args.max_steps,
+            judge=judge,
+            record=record,
         )
     result["appearance"] = appearance
     if not args.json:
@@ -135,6 +148,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=LEVELS,
         help=f"how the simulated camera sees (default: the model's training data's; "
         f"{levels_help()})",
+    )
+    system.add_argument(
+        "--experience",
+        type=Path,
+        help="record every executed action here, for lsr roadmap grow",
     )
     system.add_argument("--json", action="store_true")
     system.set_defaults(handler=cmd_eval_system)

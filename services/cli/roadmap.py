@@ -1,4 +1,5 @@
-"""`lsr build-roadmap` and `lsr calibrate`: a trained VAE's roadmap and what it knows."""
+"""`lsr build-roadmap`, `lsr calibrate`, `lsr roadmap ...` and `lsr explore`: a trained VAE's
+roadmap, what it knows, and how it grows from experience."""
 
 from __future__ import annotations
 
@@ -35,6 +36,38 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from services.planner.build import calibrate_model
 
     print(json.dumps(calibrate_model(args.model, args.data)))
+    return 0
+
+
+def cmd_grow(args: argparse.Namespace) -> int:
+    from services.cli.common import single_thread_torch
+    from services.planner.grow import grow_model
+
+    single_thread_torch()
+    print(json.dumps(grow_model(args.model, args.experience, args.data)))
+    return 0
+
+
+def cmd_versions(args: argparse.Namespace) -> int:
+    from services.planner import versions
+
+    if args.use:
+        versions.make_current(args.model, args.use)
+    current = versions.current_version(args.model)
+    print(json.dumps({"current": current, "versions": versions.versions(args.model)}))
+    return 0
+
+
+def cmd_explore(args: argparse.Namespace) -> int:
+    from services.cli.common import single_thread_torch
+    from services.sim.explore import ExploreConfig, explore
+
+    single_thread_torch()
+    cfg = ExploreConfig(
+        actions=args.actions, seed=args.seed, grow_every=args.grow_every, chain=args.chain
+    )
+    experience = args.experience or args.model / "experience" / "explore"
+    print(json.dumps(explore(args.model, cfg, experience, args.data)))
     return 0
 
 
@@ -76,3 +109,40 @@ def register(sub: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--model", required=True, type=Path, help="vae/ and roadmap/ folder")
     calibrate.add_argument("--data", required=True, type=Path, help="the model's training data")
     calibrate.set_defaults(handler=cmd_calibrate)
+
+    group = sub.add_parser("roadmap", help="a model's roadmap versions, and growing them")
+    verbs = group.add_subparsers(dest="sub", required=True)
+    grow = verbs.add_parser(
+        "grow",
+        help="grow the model's current roadmap by experience (the VAE fixed) into a new version",
+    )
+    grow.add_argument("--model", required=True, type=Path, help="vae/ and roadmap/ folder")
+    grow.add_argument(
+        "--experience", required=True, type=Path, nargs="+", help="experience folder(s)"
+    )
+    grow.add_argument(
+        "--data",
+        type=Path,
+        help="the model's training data, for a roadmap built before members were kept "
+        "(default: the path the VAE recorded)",
+    )
+    grow.set_defaults(handler=cmd_grow)
+    listing = verbs.add_parser("versions", help="the versions a model keeps, and which plans")
+    listing.add_argument("--model", required=True, type=Path)
+    listing.add_argument("--use", help="make this version current (v1, v2, ...): a roll-back")
+    listing.set_defaults(handler=cmd_versions)
+
+    explore = sub.add_parser(
+        "explore",
+        help="spend an action budget in the simulator where the roadmap is thin, and grow it",
+    )
+    explore.add_argument("--model", required=True, type=Path)
+    explore.add_argument("--actions", required=True, type=int, help="actions to try")
+    explore.add_argument(
+        "--experience", type=Path, help="where to record (default: MODEL/experience/explore)"
+    )
+    explore.add_argument("--seed", type=int, default=0)
+    explore.add_argument("--grow-every", type=int, default=100)
+    explore.add_argument("--chain", type=int, default=3, help="actions in a row from one start")
+    explore.add_argument("--data", type=Path, help="as for lsr roadmap grow")
+    explore.set_defaults(handler=cmd_explore)

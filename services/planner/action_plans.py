@@ -15,6 +15,7 @@ from services.planner.evaluate import action_leads
 from services.planner.knowing import load_calibration
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
 from services.runtime import declare_model_task
 from shared.plans import VisualActionPlan
 from shared.tasks import get_task
@@ -35,8 +36,9 @@ class ActionPlanner:
         model_dir = Path(model_dir)
         vae, config = load_vae(model_dir / "vae")
         apn, _ = load_apn(model_dir / "apn")
-        roadmap = Roadmap.load(model_dir / "roadmap")
-        calibration = load_calibration(model_dir / "roadmap", roadmap)
+        folder = roadmap_dir(model_dir)
+        roadmap = Roadmap.load(folder)
+        calibration = load_calibration(folder, roadmap)
         declare_model_task(config)
         planner = VisualPlanner(vae, roadmap, calibration)
         return cls(get_task(config["dataset"]["task"]), planner, apn)
@@ -110,7 +112,8 @@ def model_edge_actions(model_dir: Path | str, apn_dir: Path | str) -> dict[str, 
     """edge_actions for a model folder (vae/ and roadmap/ with node labels) and an APN."""
     model_dir = Path(model_dir)  # the VAE is not needed: the APN reads the nodes' latents
     task = get_task(read_vae_config(model_dir / "vae")["dataset"]["task"])
-    roadmap = Roadmap.load(model_dir / "roadmap")
-    labels = load_labels(model_dir / "roadmap", task.name)
+    folder = roadmap_dir(model_dir)
+    roadmap = Roadmap.load(folder)
+    labels = load_labels(folder, task.name)
     states = [task.array_to_state(s) for s in labels.states]
     return edge_actions(task, roadmap, load_apn(apn_dir)[0], states)

@@ -7,16 +7,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from services.encoder.checkpoint import encode_images, load_vae, read_vae_config
-from services.encoder.model import VAE
+from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
-from services.planner.knowing import Calibration, calibrate, reconstruction_errors, save_calibration
+from services.planner.knowing import Calibration, calibrate, save_calibration
+from services.planner.members import MEMBERS, Members, interleave
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapConfig, build_roadmap
+from services.planner.versions import FIRST, current_version, roadmap_dir
 from shared.checkpoint import seal
-from shared.dataset import Dataset, load_dataset
+from shared.dataset import load_dataset
 from shared.tasks import get_task
 
 LABELS = "labels.json"
@@ -28,37 +27,14 @@ def default_metric(vae_config: dict[str, Any]) -> str:
     return "l1" if metric == "none" else metric
 
 
-def encode_pairs(model: VAE, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """The encoder means of image1 and image2 of every tuple."""
-    if model.config.image_size != data.image_size:
-        raise ValueError(
-            f"the VAE takes {model.config.image_size} px images, "
-            f"the dataset has {data.image_size} px"
-        )
-    return encode_images(model, data.image1)[0], encode_images(model, data.image2)[0]
-
-
-def calibrate_and_seal(
-    model: VAE,
-    data: Dataset,
-    roadmap: Roadmap,
-    mu1: np.ndarray,
-    mu2: np.ndarray,
-    roadmap_dir: Path | str,
-) -> Calibration:
-    """What the roadmap knows, from every training image (mu1, mu2: the latents of image1 and
-    image2), written beside the roadmap and sealed with it: build-roadmap and lsr calibrate."""
-    pairs = ((data.image1, mu1), (data.image2, mu2))
-    errors = np.concatenate([reconstruction_errors(model, x, mu) for x, mu in pairs])
-    calibration = calibrate(roadmap, np.concatenate([mu1, mu2]), errors)
-    save_calibration(calibration, roadmap_dir)
-    seal(roadmap_dir, [ARRAYS_NAME, JSON_NAME, MATCH_FILE])
+def calibrate_and_seal(roadmap: Roadmap, members: Members, folder: Path | str) -> Calibration:
+    """What the roadmap knows, from every training image, written beside the roadmap with its
+    members and sealed with it: build-roadmap and lsr calibrate."""
+    calibration = calibrate(roadmap, members.points, members.errors)
+    save_calibration(calibration, folder)
+    members.save(Path(folder))
+    seal(folder, [ARRAYS_NAME, JSON_NAME, MATCH_FILE, MEMBERS])
     return calibration
-
-
-def interleave(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Rows in the roadmap's point order: first[0], second[0], first[1], ..."""
-    return np.stack([first, second], axis=1).reshape(-1, *first.shape[1:])
 
 
 def build_from_dataset(
@@ -67,12 +43,12 @@ def build_from_dataset(
     started = time.perf_counter()
     data = load_dataset(data_dir)
     model, _ = load_vae(vae_dir)
-    mu1, mu2 = encode_pairs(model, data)
+    members = Members.encode(model, data)
     encoded = time.perf_counter()
-    roadmap = build_roadmap(mu1, mu2, data.a, config)
+    roadmap = build_roadmap(members.points[0::2], members.points[1::2], data.a, config)
     built = time.perf_counter()
     roadmap.save(out_dir)
-    calibration = calibrate_and_seal(model, data, roadmap, mu1, mu2, out_dir)
+    calibration = calibrate_and_seal(roadmap, members, out_dir)
     purity: dict[str, Any] = {}
     if data.spec.state is not None:  # node labels need the states the data declares
         labels = label_nodes(
@@ -102,17 +78,21 @@ def calibrate_model(model_dir: Path | str, data_dir: Path | str) -> dict[str, An
     task = read_vae_config(model_dir / "vae")["dataset"]["task"]
     if data.task != task:
         raise ValueError(f"{data_dir} holds {data.task!r} data, the model plans {task!r}")
-    roadmap = Roadmap.load(model_dir / "roadmap")
+    if current_version(model_dir) != FIRST:
+        raise ValueError(
+            f"{model_dir}: its roadmap grew ({current_version(model_dir)}); a grown version is "
+            "calibrated as it grows, on its training data and experience together"
+        )
+    folder = roadmap_dir(model_dir)
+    roadmap = Roadmap.load(folder)
     model, _ = load_vae(model_dir / "vae")
-    mu1, mu2 = encode_pairs(model, data)
-    roadmap_dir = model_dir / "roadmap"
-    return calibrate_and_seal(model, data, roadmap, mu1, mu2, roadmap_dir).to_json()
+    return calibrate_and_seal(roadmap, Members.encode(model, data), folder).to_json()
 
 
-def load_labels(roadmap_dir: Path | str, task_name: str) -> NodeLabels:
-    path = Path(roadmap_dir) / LABELS
+def load_labels(folder: Path | str, task_name: str) -> NodeLabels:
+    path = Path(folder) / LABELS
     if not path.is_file():
-        raise ValueError(f"{roadmap_dir}: no {LABELS}; rebuild with lsr build-roadmap")
+        raise ValueError(f"{folder}: no {LABELS}; rebuild with lsr build-roadmap")
     return NodeLabels.from_json(get_task(task_name), json.loads(path.read_text()))
 
 
@@ -120,6 +100,7 @@ def load_model(model_dir: Path | str) -> tuple[Any, dict[str, Any], Roadmap, Nod
     """A model folder: vae/ and roadmap/ side by side."""
     model_dir = Path(model_dir)
     vae, vae_config = load_vae(model_dir / "vae")
-    roadmap = Roadmap.load(model_dir / "roadmap")
-    labels = load_labels(model_dir / "roadmap", vae_config["dataset"]["task"])
+    folder = roadmap_dir(model_dir)
+    roadmap = Roadmap.load(folder)
+    labels = load_labels(folder, vae_config["dataset"]["task"])
     return vae, vae_config, roadmap, labels

@@ -21,6 +21,7 @@ from services.encoder.checkpoint import encode_images, load_vae
 from services.planner.build import interleave
 from services.planner.evaluate import sample_test_pairs
 from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
 from shared.dataset import load_dataset
 
 
@@ -59,7 +60,7 @@ def run_data_eval(
     started = time.perf_counter()
     model_dir = Path(model_dir)
     vae, config = load_vae(model_dir / "vae")
-    roadmap = Roadmap.load(model_dir / "roadmap")
+    roadmap = Roadmap.load(roadmap_dir(model_dir))
     train = load_dataset(train_dir or config["dataset"]["path"])
     test = load_dataset(test_dir)
     size = config["model"]["image_size"]

@@ -21,6 +21,7 @@ from services.planner.evaluate import (
 )
 from services.planner.knowing import MatchError, load_calibration, match, reconstruction_errors
 from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
 from services.sim.state_reader import StateReader, load_reader, read_states
 from shared.dataset import Dataset, load_dataset
 from shared.tasks import get_task
@@ -41,7 +42,7 @@ def _known(
 ) -> np.ndarray | None:
     """Which test images the model knows by its calibration (None without one)."""
     try:
-        calibration = load_calibration(Path(model_dir) / "roadmap", roadmap)
+        calibration = load_calibration(roadmap_dir(model_dir), roadmap)
     except MatchError:
         return None
     errors = reconstruction_errors(vae, images, z_test)

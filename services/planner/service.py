@@ -11,6 +11,7 @@ import numpy as np
 
 from services.planner.knowing import check_ends, load_calibration
 from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
 from services.runtime import ServiceContext
 from shared.bus import Handler
 from shared.messages import GraphReply, GraphRequest, PathsReply, PathsRequest, WireArray, unpack
@@ -40,10 +41,11 @@ def node_labels(folder: Path, nodes: int) -> tuple[list[Any], list[float]] | Non
 
 
 def setup(context: ServiceContext) -> dict[str, Handler]:
-    roadmap = Roadmap.load(context.model.directory / "roadmap")
-    calibration = load_calibration(context.model.directory / "roadmap", roadmap)
+    folder = roadmap_dir(context.model.directory)
+    roadmap = Roadmap.load(folder)
+    calibration = load_calibration(folder, roadmap)
     dim, task = context.model.latent_dim, context.model.task
-    labels = node_labels(context.model.directory / "roadmap", roadmap.num_nodes)
+    labels = node_labels(folder, roadmap.num_nodes)
 
     def paths(payload: bytes) -> PathsReply:
         request = unpack(payload, PathsRequest)

@@ -13,6 +13,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from services.data.experience import Recorder
 from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
 from shared.plans import UnknownImageError, VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
@@ -52,11 +53,15 @@ def run_episode(
     max_steps: int = 20,
     max_plans: int = 8,
     on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
+    record: Recorder | None = None,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 
     `on_step(step, action, state, image)` is told of every executed action and the image
     recorded after it (progress for robots; a camera-like world draws each image once).
+    `record` gets every executed action as experience (the image planned from, the action,
+    the image after), a refused one and each fresh look at an unchanged scene as no-action
+    pairs.
     """
     if goal_image is None:
         if goal is None:
@@ -65,11 +70,15 @@ def run_episode(
         goal_image = world.render()
     state = world.reset(start, rng)
     episode = Episode(success=False, reason="max_steps", final_state=state, states=[state])
+    last: np.ndarray | None = None  # the image seen after the last action
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
+        seen = world.render()
+        if record is not None and last is not None and not np.array_equal(last, seen):
+            record(last, None, seen, state, state)
         try:
-            plans = planner.plan(world.render(), goal_image, max_plans)
+            plans = planner.plan(seen, goal_image, max_plans)
         except UnknownImageError as refused:  # never act on a scene the model does not know
             episode.reason = f"unknown_{refused.end}"
             episode.detail = refused.reason
@@ -86,18 +95,23 @@ def run_episode(
         if plan.actions[0] is None:  # the APN saw no action between the first two nodes
             episode.reason = "no_action"
             break
+        before = state
         try:
             state = world.execute(plan.actions[0], rng)
         except IllegalActionError:
             episode.illegal_actions += 1
             episode.reason = "illegal_action"  # the world is unchanged: re-planning repeats it
+            if record is not None:
+                record(seen, None, world.render(), state, state)
             break
         except WorldError as exc:
             episode.reason = f"physics: {exc}"
             break
         episode.actions.append(plan.actions[0])
         episode.states.append(state)
-        episode.images.append(world.render())
+        episode.images.append(last := world.render())
+        if record is not None:
+            record(seen, plan.actions[0], last, before, state)
         if on_step is not None:
             on_step(len(episode.actions), plan.actions[0], state, episode.images[-1])
     try:
@@ -142,6 +156,7 @@ def evaluate_system(
     max_steps: int = 20,
     progress: bool = True,
     judge: PlanJudge | None = None,
+    record: Recorder | None = None,
 ) -> dict[str, Any]:
     """Random start/goal state pairs run closed loop; success = the simulator reaches the goal.
 
@@ -160,7 +175,7 @@ def evaluate_system(
         goal = task.sample_state(rng)
         while goal == start:
             goal = task.sample_state(rng)
-        episode = run_episode(planner, world, start, goal, rng, max_steps=max_steps)
+        episode = run_episode(planner, world, start, goal, rng, max_steps=max_steps, record=record)
         executed += len(episode.actions)
         illegal += episode.illegal_actions
         reasons[episode.reason] = reasons.get(episode.reason, 0) + 1
@@ -174,6 +189,8 @@ def evaluate_system(
             apn_ok += bool(episode.chosen) and judge.action_plan_ok(episode.chosen[0])
             for plan, after in zip(episode.chosen, episode.states[1:], strict=False):
                 right_transitions += judge.node_states[plan.nodes[1]] == after
+    if record is not None:
+        record.flush()
     attempted = executed + illegal
     result = {
         "pairs": pairs,

@@ -161,6 +161,11 @@ class Task(ABC, Generic[State, Action]):
     @abstractmethod
     def array_to_action(self, array: np.ndarray) -> Action | None: ...
 
+    def same_action(self, first: np.ndarray, second: np.ndarray) -> bool:
+        """Whether two action arrays ask for the same thing: how experience finds an edge it
+        contradicts. Equality, unless the task knows how far a click may stray."""
+        return bool(np.array_equal(first, second))
+
 
 class World(ABC, Generic[State, Action]):
     """A physical instance of a task: set a state, look at it, act on it."""

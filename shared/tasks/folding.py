@@ -101,6 +101,14 @@ class FoldingTask(Task[Folds, ClothAction]):
                 return move
         return None
 
+    def same_action(self, first: np.ndarray, second: np.ndarray) -> bool:
+        """Two clicks that name one move are one action (a demonstrator's clicks spread over
+        the tolerance); actions naming no move are the same only when equal."""
+        moves = [self.match(a) if a else None for a in map(self.array_to_action, (first, second))]
+        if moves[0] is None or moves[1] is None:
+            return bool(np.array_equal(first, second))
+        return moves[0] is moves[1]
+
     # ----- description -----
     @cached_property
     def spec(self) -> TaskSpec:  # type: ignore[override]

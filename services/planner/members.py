@@ -1,0 +1,109 @@
+"""What a roadmap was built from, kept beside it so that it can grow without the images.
+
+`members.safetensors` holds every point's latent and reconstruction errors, each tuple's action
+and the true states where known, in the roadmap's point order (z1[0], z2[0], z1[1], ...).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+from safetensors.numpy import load_file, save_file
+
+from services.encoder.checkpoint import encode_images
+from services.encoder.model import VAE
+from services.planner.knowing import reconstruction_errors
+from services.planner.roadmap import RoadmapError
+from shared.checkpoint import replace_atomically
+from shared.dataset import Dataset
+
+MEMBERS = "members.safetensors"
+
+
+def encode_pairs(model: VAE, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """The encoder means of image1 and image2 of every tuple."""
+    if model.config.image_size != data.image_size:
+        raise ValueError(
+            f"the VAE takes {model.config.image_size} px images, "
+            f"the dataset has {data.image_size} px"
+        )
+    return encode_images(model, data.image1)[0], encode_images(model, data.image2)[0]
+
+
+def interleave(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Rows in the roadmap's point order: first[0], second[0], first[1], ..."""
+    return np.stack([first, second], axis=1).reshape(-1, *first.shape[1:])
+
+
+@dataclass
+class Members:
+    """The points a roadmap was built from, in its point order."""
+
+    points: np.ndarray  # (2N, D) float32 latents
+    errors: np.ndarray  # (2N, 2) float32 reconstruction errors (whole image, worst patch)
+    actions: np.ndarray  # (N, *action shape): each tuple's action, -1 for no-action pairs
+    a: np.ndarray  # (N,) uint8: 1 for an action pair
+    states: np.ndarray  # (2N, *state shape): the true states where known
+    has_state: np.ndarray  # (2N,) uint8: 1 where the recorder knew the state
+
+    def save(self, folder: Path) -> None:
+        arrays = {f.name: np.ascontiguousarray(getattr(self, f.name)) for f in fields(self)}
+        replace_atomically(folder / MEMBERS, lambda tmp: save_file(arrays, str(tmp)))
+
+    @classmethod
+    def load(cls, folder: Path) -> Members:
+        try:
+            arrays = load_file(str(folder / MEMBERS))
+        except Exception as exc:  # safetensors raises its own error types for corrupt files
+            raise RoadmapError(f"{folder / MEMBERS}: not a readable safetensors file") from exc
+        missing = [f.name for f in fields(cls) if f.name not in arrays]
+        if missing:
+            raise RoadmapError(f"{folder / MEMBERS}: missing arrays {', '.join(missing)}")
+        return cls(**{f.name: arrays[f.name] for f in fields(cls)})
+
+    @classmethod
+    def encode(cls, model: VAE, data: Dataset) -> Members:
+        """A dataset's tuples through the (fixed) VAE."""
+        states = (data.state1, data.state2) if data.spec.state is not None else None
+        return cls.of_images(model, data.image1, data.image2, data.u, data.a, states)
+
+    @classmethod
+    def of_images(
+        cls,
+        model: VAE,
+        image1: np.ndarray,
+        image2: np.ndarray,
+        u: np.ndarray,
+        a: np.ndarray,
+        states: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Members:
+        """Tuples of images through the (fixed) VAE; states where the recorder knew them."""
+        if model.config.image_size != image1.shape[1]:
+            raise ValueError(
+                f"the VAE takes {model.config.image_size} px images, got {image1.shape[1]} px"
+            )
+        mu1, mu2 = encode_images(model, image1)[0], encode_images(model, image2)[0]
+        errors = [reconstruction_errors(model, x, mu) for x, mu in ((image1, mu1), (image2, mu2))]
+        n = len(u)
+        return cls(
+            points=interleave(mu1, mu2).astype(np.float32),
+            errors=interleave(*errors).astype(np.float32),
+            actions=np.asarray(u),
+            a=np.asarray(a, np.uint8),
+            states=interleave(*states) if states is not None else np.zeros((2 * n, 0), np.int8),
+            has_state=np.full(2 * n, states is not None, np.uint8),
+        )
+
+    def __add__(self, other: Members) -> Members:
+        """Both, this one's points first; rows without states take this one's state shape."""
+        if other.states.shape[1:] != self.states.shape[1:] and not other.has_state.any():
+            shape = (len(other.points), *self.states.shape[1:])
+            other = Members(
+                other.points, other.errors, other.actions, other.a,
+                np.zeros(shape, self.states.dtype), other.has_state,
+            )  # fmt: skip
+        return Members(
+            *(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self))
+        )

@@ -1,0 +1,181 @@
+"""`lsr explore`: spend an action budget in the simulator where the roadmap is thin, and grow it.
+
+The explorer uses no task rules to choose: it starts where the roadmap is thin (nodes in small
+components, nodes with few edges), in the state recorded for such a node, and tries actions the
+APN proposes towards nodes it has no edge to (most of them), or actions drawn from the task's
+action spec. The world executes what it can and refuses the rest, which is recorded as nothing
+changed. Every `grow_every` actions the roadmap grows in memory from what was seen, so that the
+next choices follow its new shape; at the end the experience grows the model's roadmap into a
+new version (`lsr roadmap grow`). The rules only judge the result afterwards (`lsr eval`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components
+from tqdm import tqdm
+
+from services.apn.train import propose
+from services.data.experience import ExperienceLog, Recorder
+from services.encoder.checkpoint import read_vae_config
+from services.planner.action_plans import ActionPlanner
+from services.planner.build import load_labels
+from services.planner.grow import grow, grow_model, load_members
+from services.planner.members import Members
+from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
+from services.sim.worlds import has_world, make_world
+from shared.appearance import trained_appearance
+from shared.tasks.base import IllegalActionError, Task, WorldError
+from shared.tasks.spec import ArraySpec
+
+
+@dataclass(frozen=True)
+class ExploreConfig:
+    actions: int  # the budget: actions tried in the world, refused ones included
+    seed: int = 0
+    grow_every: int = 100  # actions between in-memory growths
+    spec_share: float = 0.2  # share of actions drawn from the spec, not proposed by the APN
+    chain: int = 3  # actions in a row from one start before choosing another
+
+    def __post_init__(self) -> None:
+        if self.actions < 1 or self.grow_every < 1 or self.chain < 1:
+            raise ValueError("actions, grow_every and chain must be at least 1")
+        if not 0.0 <= self.spec_share <= 1.0:
+            raise ValueError(f"spec_share must lie in 0..1, got {self.spec_share}")
+
+
+def shape_of(roadmap: Roadmap) -> tuple[np.ndarray, np.ndarray]:
+    """(component of each node, degree of each node)."""
+    k = roadmap.num_nodes
+    e = roadmap.edges
+    graph = sparse.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(k, k))
+    component = connected_components(graph, directed=False)[1]
+    degree = np.bincount(e.ravel(), minlength=k)
+    return component, degree
+
+
+def thinness(roadmap: Roadmap) -> np.ndarray:
+    """How much each node asks to be explored from: small components and few edges first."""
+    component, degree = shape_of(roadmap)
+    size = np.bincount(component)[component]
+    weight = 1.0 / ((1.0 + degree) * size)
+    return weight / weight.sum()
+
+
+def spec_action(spec: ArraySpec, rng: np.random.Generator) -> np.ndarray:
+    """An action drawn uniformly from what the spec allows."""
+    low = spec.start
+    values = [rng.integers(low, low + c) for c in spec.counts]
+    return np.asarray(values, dtype=spec.dtype).reshape(spec.shape)
+
+
+def _target(roadmap: Roadmap, node: int, rng: np.random.Generator) -> int:
+    """A node to head for: another component where there is one, else a node without an edge
+    from here."""
+    component, _ = shape_of(roadmap)
+    others = np.flatnonzero(component != component[node])
+    if not len(others):
+        others = np.setdiff1d(np.arange(roadmap.num_nodes), [node, *roadmap.neighbours(node)])
+    return int(rng.choice(others)) if len(others) else node
+
+
+def explore(
+    model_dir: Path | str,
+    cfg: ExploreConfig,
+    experience: Path | str,
+    data_dir: Path | str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Explore, record into `experience`, then grow the model's roadmap from it."""
+    started = time.perf_counter()
+    model_dir = Path(model_dir)
+    planner = ActionPlanner.from_model_dir(model_dir)
+    task: Task = planner.task
+    if not has_world(task.name):
+        raise ValueError(f"task {task.name!r} has no simulator: lsr explore needs one")
+    vae = planner.planner.vae
+    roadmap = base = planner.planner.roadmap
+    members = load_members(model_dir, vae, data_dir)
+    node_states = [
+        task.array_to_state(s) for s in load_labels(roadmap_dir(model_dir), task.name).states
+    ]
+    config = read_vae_config(model_dir / "vae")
+    size = int(config["model"]["image_size"])
+    log = ExperienceLog(experience, task.spec, size, source="explore")
+    record = Recorder(log, task)
+    rng = np.random.default_rng(cfg.seed)
+    new: Members | None = None  # what was seen, encoded at the last growth
+    rows: list[tuple] = []  # what was seen since
+    tried = refused = from_spec = 0
+    shape = {"nodes": roadmap.num_nodes, "edges": len(roadmap.edges)}
+    shape["components"] = int(shape_of(roadmap)[0].max() + 1)
+    bar = tqdm(total=cfg.actions, desc="explore", unit="action", disable=not progress)
+    bar.set_postfix(shape)
+    appearance = trained_appearance(config)
+    with make_world(task.name, size, appearance=appearance) as world:
+        while tried < cfg.actions:
+            start = int(rng.choice(roadmap.num_nodes, p=thinness(roadmap)))
+            state = world.reset(node_states[start], rng)
+            for _ in range(cfg.chain):
+                if tried >= cfg.actions:
+                    break
+                image = world.render()
+                z = planner.encode(image)
+                here = int(roadmap.nearest_node(z))
+                if rng.random() < cfg.spec_share:
+                    array = spec_action(task.spec.action, rng)
+                    from_spec += 1
+                else:
+                    there = _target(roadmap, here, rng)
+                    arrays, _ = propose(planner.apn, z[None], roadmap.nodes[there][None])
+                    array = arrays[0]
+                tried += 1
+                bar.update(1)
+                action = task.array_to_action(array)
+                try:
+                    if action is None:
+                        raise IllegalActionError("no action")
+                    after_state = world.execute(action, rng)
+                except IllegalActionError:
+                    refused += 1
+                    action, after_state = None, state
+                except WorldError:  # a wrecked scene: start elsewhere
+                    break
+                rows.append((image, action, world.render(), state, after_state))
+                record(*rows[-1])
+                state = after_state
+                if tried % cfg.grow_every == 0 and rows:
+                    fresh = _encode(vae, task, rows)
+                    new, rows = fresh if new is None else new + fresh, []
+                    roadmap, _, _ = grow(base, members, new, task)
+                    shape = {"nodes": roadmap.num_nodes, "edges": len(roadmap.edges)}
+                    shape["components"] = int(shape_of(roadmap)[0].max() + 1)
+                    bar.set_postfix(shape)
+    bar.close()
+    record.flush()
+    explored = time.perf_counter() - started
+    report = grow_model(model_dir, [experience], data_dir)
+    return {
+        "actions": tried,
+        "refused": refused,
+        "from_spec": from_spec,
+        "recorded": record.recorded,
+        "explore_seconds": explored,
+        "growth": report,
+    }
+
+
+def _encode(vae: Any, task: Task, rows: list[tuple]) -> Members:
+    image1, u, image2, s1, s2 = zip(*rows, strict=True)
+    u = np.stack([task.action_to_array(x) for x in u])
+    states = tuple(np.stack([task.state_to_array(s) for s in x]) for x in (s1, s2))
+    return Members.of_images(
+        vae, np.stack(image1), np.stack(image2), u, (u >= 0).any(axis=1), states
+    )

@@ -1,0 +1,101 @@
+import numpy as np
+import pytest
+
+from services.planner.grow import attach, contradictions, grow
+from services.planner.members import Members
+from services.planner.roadmap import RoadmapConfig, build_roadmap
+from shared.tasks import get_task
+
+TASK = get_task("box_stacking")
+CENTRES = {"A": 0.0, "B": 10.0, "C": 20.0, "D": 30.0, "far": 90.0}
+
+
+def latent(name: str, rng: np.random.Generator) -> np.ndarray:
+    return np.array([CENTRES[name], 0.0]) + rng.normal(0, 0.05, 2)
+
+
+def members(rows: list[tuple[str, str, int]], seed: int) -> Members:
+    """Tuples (from, to, action id): action id 0 is a no-action pair, k > 0 an action."""
+    rng = np.random.default_rng(seed)
+    points = np.array([latent(x, rng) for a, b, _ in rows for x in (a, b)], np.float32)
+    u = np.array([[k, k, k, k] if k else [-1] * 4 for *_, k in rows], np.int8)
+    return Members(
+        points=points,
+        errors=np.zeros((len(points), 2), np.float32),
+        actions=u,
+        a=(u[:, 0] >= 0).astype(np.uint8),
+        states=np.zeros((len(points), 0), np.int8),
+        has_state=np.zeros(len(points), np.uint8),
+    )
+
+
+def base(rows: list[tuple[str, str, int]]):
+    m = members(rows, seed=0)
+    config = RoadmapConfig(metric="l1", eps_rule="paper", w_eps=30.0, min_samples=1)
+    return build_roadmap(m.points[0::2], m.points[1::2], m.a, config), m
+
+
+BASE = [("A", "A", 0), ("B", "B", 0), ("C", "C", 0), ("D", "D", 0)] * 3 + [
+    ("A", "B", 1),
+    ("C", "D", 2),
+]
+
+
+def test_attach_joins_through_new_points_and_holds_what_touches_two_nodes():
+    points = np.array([[0.0], [10.0], [0.9], [1.8], [5.0]])
+    node = np.array([0, 1, -1, -1, -1])
+    joined, ambiguous = attach(points, node, epsilon=1.0, metric="l1")
+    assert joined.tolist() == [0, 1, 0, 0, -1]  # 1.8 joins through 0.9, 5.0 through nothing
+    points = np.array([[0.0], [2.0], [1.0]])
+    joined, ambiguous = attach(points, np.array([0, 1, -1]), epsilon=1.5, metric="l1")
+    assert joined.tolist() == [0, 1, -1] and ambiguous.tolist() == [False, False, True]
+
+
+def test_growth_adds_the_edges_experience_shows_and_keeps_node_ids():
+    roadmap, m = base(BASE)
+    assert roadmap.num_nodes == 4 and len(roadmap.edges) == 2
+    experience = members([("B", "C", 3), ("A", "A", 4), ("far", "far", 5)], seed=1)
+    grown, everything, report = grow(roadmap, m, experience, TASK)
+    assert np.array_equal(grown.nodes[:4], roadmap.nodes)  # old nodes keep ids and latents
+    assert len(grown.edges) == 3 and report["components"] == [2, 1]
+    assert report["new_edges"] == 1 and report["no_change"] == 1
+    assert report["held_for_review"] == 1 and report["held"].tolist() == [2]
+    assert report["new_nodes"] == 0  # two images far away are no state yet
+    assert len(everything.points) == len(m.points) + 6 == len(grown.point_node)
+
+
+def test_an_edge_contradicted_more_than_supported_is_dropped():
+    roadmap, m = base(BASE)
+    # Action 1 took A to B once in the data; experience executes it from A three times and
+    # sees C each time.
+    experience = members([("A", "C", 1)] * 3, seed=2)
+    grown, _, report = grow(roadmap, m, experience, TASK)
+    a, b, c = (int(roadmap.nearest_node(np.array([CENTRES[x], 0.0]))) for x in "ABC")
+    edges = {tuple(e) for e in grown.edges.tolist()}
+    assert (min(a, b), max(a, b)) not in edges and (min(a, c), max(a, c)) in edges
+    assert report["dropped_edges"] == [[min(a, b), max(a, b)]]
+    assert report["contradictions"] == 3
+
+
+def test_contradictions_need_the_same_action():
+    roadmap, m = base(BASE)
+    experience = members([("A", "C", 7)], seed=3)  # another action from A: no contradiction
+    everything = m + experience
+    joined = [roadmap.nearest_node(p) for p in experience.points]
+    node = np.concatenate([roadmap.point_node, joined])
+    assert contradictions(TASK, node, everything, np.array([len(m.a)])) == {}
+
+
+def test_repeated_new_images_linked_by_an_action_make_a_node():
+    roadmap, m = base(BASE)
+    experience = members([("D", "far", 6)] * 3 + [("far", "far", 0)], seed=4)
+    grown, _, report = grow(roadmap, m, experience, TASK)
+    assert report["new_nodes"] == 1 and grown.num_nodes == 5
+    assert report["held_for_review"] == 0
+
+
+@pytest.mark.parametrize("rows", [[("A", "B", 1)]])
+def test_members_add_keeps_order(rows):
+    first, second = members(rows, 0), members(rows, 1)
+    both = first + second
+    assert np.array_equal(both.points[2:], second.points) and len(both.a) == 2

@@ -1,0 +1,109 @@
+"""Experience end to end on the tiny model: recorded by the closed loop and by exploration in
+the real simulator, grown into roadmap versions that every --model command then uses."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from services.data.experience import ExperienceLog, Recorder
+from services.planner import versions
+from services.planner.action_plans import ActionPlanner
+from services.planner.grow import grow_model
+from services.planner.roadmap import Roadmap
+from services.sim.box_stacking.world import BoxStackingWorld
+from services.sim.closed_loop import optimal_moves, run_episode
+from services.sim.explore import ExploreConfig, explore
+from shared.dataset import load_dataset
+from shared.plans import VisualActionPlan
+from shared.tasks.base import IllegalActionError
+
+
+@pytest.fixture
+def model(tiny_model, tmp_path):
+    folder = tmp_path / "model"
+    shutil.copytree(tiny_model[0], folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def small_world():
+    with BoxStackingWorld(image_size=32) as w:
+        yield w
+
+
+class Oracle:
+    """Plans one true shortest move at a time (the tiny model plans too badly to act)."""
+
+    def __init__(self, world):
+        self.world = world
+
+    def plan(self, start, goal, max_plans=8):
+        task, state = self.world.task, self.world.read_state()
+        move, _ = min(task.neighbours(state), key=lambda m: optimal_moves(task, m[1], self.goal))
+        return [VisualActionPlan([0, 1], [start, goal], [move], [1.0], [1])]
+
+
+def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
+    model, small_world, tmp_path
+):
+    task = small_world.task
+    oracle = Oracle(small_world)
+    experience = tmp_path / "exp"
+    record = Recorder(ExperienceLog(experience, task.spec, 32), task)
+    rng = np.random.default_rng(0)
+    executed = 0
+    for _ in range(3):
+        start, oracle.goal = task.sample_state(rng), task.sample_state(rng)
+        episode = run_episode(oracle, small_world, start, oracle.goal, rng, record=record)
+        executed += len(episode.actions)
+    record.flush()
+    data = load_dataset(experience)
+    assert int(data.a.sum()) == executed > 0
+    moved = data.a == 1
+    for u, s1, s2 in zip(data.u[moved], data.state1[moved], data.state2[moved], strict=True):
+        start, after = task.array_to_state(s1), task.array_to_state(s2)
+        assert task.apply(start, task.array_to_action(u)) == after  # what the world did
+
+    before = Roadmap.load(versions.roadmap_dir(model))
+    report = grow_model(model, [experience])
+    assert report["version"] == "v2" and versions.current_version(model) == "v2"
+    grown = Roadmap.load(versions.roadmap_dir(model))
+    assert len(grown.point_node) == len(before.point_node) + 2 * len(data)
+    assert np.array_equal(grown.nodes[: before.num_nodes], before.nodes)
+    labels = json.loads((versions.roadmap_dir(model) / "labels.json").read_text())
+    assert len(labels) == grown.num_nodes
+    assert ActionPlanner.from_model_dir(model).planner.roadmap.num_nodes == grown.num_nodes
+
+    with pytest.raises(ValueError, match="nothing new"):
+        grow_model(model, [experience])  # the same tuples never count twice
+    versions.make_current(model, "v1")  # a roll-back
+    assert ActionPlanner.from_model_dir(model).planner.roadmap.num_nodes == before.num_nodes
+    assert versions.versions(model) == ["v1", "v2"]
+
+
+def test_exploration_spends_its_budget_in_the_simulator_and_grows_a_version(model, tmp_path):
+    cfg = ExploreConfig(actions=8, seed=1, grow_every=4, chain=2)
+    report = explore(model, cfg, tmp_path / "exp", progress=False)
+    data = load_dataset(tmp_path / "exp")
+    assert report["actions"] == 8 and len(data) == 8 == report["recorded"]
+    assert report["refused"] == int((data.a == 0).sum())
+    assert report["growth"]["version"] == versions.current_version(model) == "v2"
+    task = ActionPlanner.from_model_dir(model).task
+    for u, s1, s2, a in zip(data.u, data.state1, data.state2, data.a, strict=True):
+        start, after = task.array_to_state(s1), task.array_to_state(s2)
+        if a:
+            assert task.apply(start, task.array_to_action(u)) == after
+        else:
+            assert start == after
+
+
+def test_an_illegal_action_is_not_applied(small_world):
+    task = small_world.task
+    state = task.sample_state(np.random.default_rng(0))
+    small_world.reset(state, np.random.default_rng(0))
+    bad = task.array_to_action(np.array([0, 0, 0, 0], np.int8))
+    with pytest.raises(IllegalActionError):
+        small_world.execute(bad, np.random.default_rng(0))
+    assert small_world.read_state() == state
