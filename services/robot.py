@@ -8,6 +8,7 @@ The robot's body is its own MuJoCo world. After every action it looks (renders),
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import time
 from typing import Any
@@ -18,10 +19,19 @@ import zenoh
 from services.sim.closed_loop import Episode, run_episode
 from services.sim.worlds import make_world
 from shared.appearance import task_default
-from shared.bus import API_PLAN_KEY, JSON, ServiceUnavailable, encoder_image_size, robot_plan_key
+from shared.bus import (
+    API_PLAN_KEY,
+    JSON,
+    ServiceUnavailable,
+    encoder_image_size,
+    experience_key,
+    robot_plan_key,
+)
 from shared.images import png_b64
 from shared.plans import Match, UnknownImageError, VisualActionPlan, refused_end
 from shared.tasks import get_task
+
+log = logging.getLogger(__name__)
 
 
 class RobotPlanner:
@@ -101,6 +111,30 @@ class RobotPlanner:
                 return message
         raise TimeoutError(f"plan {plan_id} was not published on {robot_plan_key(self.robot_id)}")
 
+    def report(
+        self, before: np.ndarray, action: Any, after: np.ndarray, *_states: Any
+    ) -> int | None:
+        """Tell `lsr/experience/{task}` what was done and seen (run_episode's `record`); the
+        tuples the gateway holds now, or None where it could not record (the robot goes on)."""
+        body = {
+            "task": self.task_name,
+            "tuples": [
+                {
+                    "before": png_b64(before),
+                    "action": None if action is None else self.task.action_to_json(action),
+                    "after": png_b64(after),
+                }
+            ],
+        }
+        key = experience_key(self.task_name)
+        for reply in self.session.get(key, payload=json.dumps(body), encoding=JSON, timeout=5.0):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())["total"]
+            log.warning("%s: experience not recorded: %s", key, reply.err.payload.to_bytes()[:200])
+            return None
+        log.warning("%s: no gateway answered; experience not recorded", key)
+        return None
+
     def close(self) -> None:
         self.subscriber.undeclare()
 
@@ -113,7 +147,10 @@ def run_robot(
     goal: Any,
     max_steps: int = 20,
     seed: int = 0,
+    report: bool = False,
 ) -> Episode:
+    """Reach `goal` closed loop over the public API; with `report`, every action it executes
+    goes back to the gateway as experience."""
     task = get_task(task_name)
     planner = RobotPlanner(session, robot_id, task_name)
 
@@ -136,6 +173,7 @@ def run_robot(
                 np.random.default_rng(seed),
                 max_steps=max_steps,
                 on_step=progress,
+                record=planner.report if report else None,
             )
     finally:
         planner.close()

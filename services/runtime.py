@@ -9,7 +9,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
@@ -85,6 +85,10 @@ class ServiceContext:
     model: ModelInfo
     session: zenoh.Session
     settings: Settings
+    # What a service reports in its health answers beside its model (the planner's roadmap
+    # version); it may change while serving.
+    status: dict[str, str] = field(default_factory=dict)
+    stopping: threading.Event = field(default_factory=threading.Event)  # set when it stops
 
 
 # A service's setup loads its model and returns its handlers by operation name.
@@ -113,6 +117,7 @@ def run_service(service: str, setup: Setup, settings: Settings) -> int:
             latent_dim=model.latent_dim,
             pid=os.getpid(),
             uptime_s=round(time.monotonic() - started, 3),
+            roadmap_version=context.status.get("roadmap_version"),
         )
 
     server = Server(session, service, instance)
@@ -123,6 +128,7 @@ def run_service(service: str, setup: Setup, settings: Settings) -> int:
     log.info("%s %s serving %s (model %s)", service, instance, model.task, model.model_id)
     print(f"{service} {instance} ready: task {model.task}, model {model.model_id}", flush=True)
     wait_for_stop_signal()
+    context.stopping.set()
     server.close()
     close_quietly(session)
     return 0

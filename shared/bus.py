@@ -69,6 +69,12 @@ def robot_plan_key(robot_id: str) -> str:
 
 
 API_PLAN_KEY = "lsr/api/plan"
+EXPERIENCE_KEYS = "lsr/experience/*"
+
+
+def experience_key(task: str) -> str:
+    """Where robots report what they did (`POST /experience` over zenoh); the gateway records."""
+    return f"lsr/experience/{task}"
 
 
 def progress_key(task: str, run_id: str) -> str:

@@ -107,6 +107,7 @@ class PathsReply(Message):
     reason: str | None = None  # why `paths` is empty
     # {"start": {"known", "score", "node"}, "goal": {...}}: how well the model knows each end
     match: dict[str, dict[str, Any]] | None = None
+    roadmap_version: str | None = None  # which version of the model's roadmap planned (v1, ...)
 
 
 class GraphRequest(TaskMessage):
@@ -120,6 +121,7 @@ class GraphReply(Message):
     states: list[Any] | None = None  # each node's majority true state, when the model knows it
     purity: list[float] | None = None  # the share of its members in that state
     model_id: str
+    roadmap_version: str | None = None
 
 
 # apn ----------------------------------------------------------------------------------------
@@ -203,6 +205,7 @@ class InfoReply(Message):
     latent_dim: int
     pid: int
     uptime_s: float
+    roadmap_version: str | None = None  # the planner's: grown roadmaps switch while serving
 
 
 class CallBudget(Message):

@@ -66,6 +66,11 @@ class Settings(BaseSettings):
     require_api_keys: bool = Field(
         False, description="refuse to start the gateway without API key digests (deployments)"
     )
+    experience_dir: Path | None = Field(
+        None,
+        description="gateway: where robots' reported experience is recorded, a folder per task "
+        "(for lsr roadmap grow); unset: reports are answered 503",
+    )
     host: str = "127.0.0.1"
     port: int = 8000
 

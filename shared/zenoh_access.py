@@ -5,10 +5,11 @@ access-control rules, denying by default:
 - each service (encoder, planner, apn, sim) may declare queryables, answer queries and hold a
   liveliness token only under its own keys (`lsr/{service}/**`, `lsr/alive/{service}/**`);
 - the gateway and the sim may query the services and watch their tokens; the gateway alone
-  serves `lsr/api/plan` and publishes on `lsr/robot/**`;
+  serves `lsr/api/plan` and `lsr/experience/*` and publishes on `lsr/robot/**`;
 - the sim publishes the steps of running episodes (`lsr/sim/*/progress/*`), which only the
   gateway may subscribe to;
-- a robot may query `lsr/api/plan` and the encoder's info keys (its image size), and subscribe
+- a robot may query `lsr/api/plan`, `lsr/experience/*` (what it did, for the roadmap to grow
+  from) and the encoder's info keys (its image size), and subscribe
   to its own `lsr/robot/{robot_id}/plan` only;
 - a monitor (`lsr ping` from outside, dashboards, tests) may watch tokens, ask every info key,
   query `lsr/api/plan` and subscribe to every robot's plans, and declare nothing.
@@ -36,6 +37,7 @@ from pathlib import Path
 SERVICE_ROLES = ("encoder", "planner", "apn", "sim")
 BOTH = ["ingress", "egress"]
 PROGRESS_KEYS = "lsr/sim/*/progress/*"  # `shared.bus.progress_key`
+EXPERIENCE_KEYS = "lsr/experience/*"  # `shared.bus.experience_key`: robots report, gateway records
 # A robot's user name embeds its id, and the dictionary is `user:password` lines.
 ACL_ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
@@ -70,7 +72,8 @@ def access_control(robots: list[str]) -> dict:
         rule("ask-info", ask, [f"lsr/{s}/*/info/**" for s in SERVICE_ROLES]),
         rule("ask-encoder-info", ask, ["lsr/encoder/*/info/**"]),
         rule("ask-api", ask, ["lsr/api/plan"]),
-        rule("serve-api", serve, ["lsr/api/plan"]),
+        rule("serve-api", serve, ["lsr/api/plan", EXPERIENCE_KEYS]),
+        rule("report-experience", ask, [EXPERIENCE_KEYS]),
         rule("publish-plans", ["put"], ["lsr/robot/**"], ["ingress"]),
         rule("read-all-plans", ["declare_subscriber", "put"], ["lsr/robot/**"]),
         rule("gateway-token", ["liveliness_token"], ["lsr/alive/gateway/**"], ["ingress"]),
@@ -101,7 +104,9 @@ def access_control(robots: list[str]) -> dict:
     if robots:
         users = [robot_user(r) for r in robots]
         subjects.append({"id": "robots", "usernames": users})
-        policies.append({"rules": ["ask-api", "ask-encoder-info"], "subjects": ["robots"]})
+        policies.append(
+            {"rules": ["ask-api", "ask-encoder-info", "report-experience"], "subjects": ["robots"]}
+        )
     for robot_id in robots:
         user = robot_user(robot_id)
         plans = rule(f"plans-{user}", ["declare_subscriber", "put"], [f"lsr/robot/{robot_id}/plan"])

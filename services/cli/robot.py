@@ -20,7 +20,14 @@ def cmd_robot(args: argparse.Namespace) -> int:
     session = open_session(config)
     try:
         episode = run_robot(
-            session, args.robot_id, args.task, start, goal, args.max_steps, args.seed
+            session,
+            args.robot_id,
+            args.task,
+            start,
+            goal,
+            args.max_steps,
+            args.seed,
+            report=args.report,
         )
     finally:
         close_quietly(session)
@@ -39,5 +46,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     robot.add_argument("--goal-state", required=True, help="state JSON, inline or a file path")
     robot.add_argument("--max-steps", type=int, default=20)
     robot.add_argument("--seed", type=int, default=0)
+    robot.add_argument(
+        "--report",
+        action="store_true",
+        help="report every executed action as experience (the gateway records it where "
+        "LSR_EXPERIENCE_DIR is set)",
+    )
     robot.add_argument("--connect", help="zenoh router endpoints (env LSR_ZENOH_CONNECT)")
     robot.set_defaults(handler=cmd_robot)

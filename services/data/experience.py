@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import fcntl
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -138,6 +138,11 @@ def has_experience(directory: Path | str) -> bool:
     """A folder some log has written tuples to."""
     path = Path(directory) / "manifest.json"
     return path.is_file() and bool(ds.read_manifest(directory)["shards"])
+
+
+# What a closed loop calls after each action: (image, action or None, image after, state,
+# state after); the states are None where the recorder does not know them (a real robot).
+Record = Callable[[np.ndarray, Any, np.ndarray, Any, Any], object]
 
 
 class Recorder:

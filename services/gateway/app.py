@@ -19,8 +19,9 @@ import zenoh
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
+from services.data.experience import ExperienceError
 from services.gateway.auth import ApiKeys, load_digests
 from services.gateway.inputs import BodyError, clip, error_detail, parse_json
 from services.gateway.middleware import ARRIVED, Admission, BodyLimit, GuardedRoute
@@ -28,6 +29,8 @@ from services.gateway.planning import Gateway, TaskNotServed, plan_query_error
 from services.gateway.schemas import (
     ExecuteRequest,
     ExecuteResponse,
+    ExperienceRequest,
+    ExperienceResponse,
     Health,
     PlanRequest,
     PlanResponse,
@@ -37,11 +40,13 @@ from services.gateway.schemas import (
 from services.gateway.viewer import add_viewer
 from shared.bus import (
     API_PLAN_KEY,
+    EXPERIENCE_KEYS,
     JSON,
     RemoteError,
     ServiceUnavailable,
     alive_key,
     close_quietly,
+    experience_key,
     finish,
     new_instance_id,
     open_session,
@@ -70,6 +75,8 @@ def error_body(exc: Exception) -> tuple[int, Any] | None:
         return 422, error_detail(exc.errors())
     if isinstance(exc, TaskNotServed):
         return 404, clip(str(exc))
+    if isinstance(exc, ExperienceError):  # the folder holds another model's experience
+        return 409, clip(str(exc))
     if isinstance(exc, ServiceUnavailable):
         return 503, clip(str(exc))
     if isinstance(exc, RemoteError):
@@ -77,10 +84,15 @@ def error_body(exc: Exception) -> tuple[int, Any] | None:
     return None
 
 
-def serve_plan_queries(
-    session: zenoh.Session, gateway: Gateway, settings: Settings
+# An answer to one query: its parsed JSON body and key in, the reply body out.
+Answer = Callable[[Any, str, float], BaseModel]
+
+
+def serve_queries(
+    session: zenoh.Session, key: str, answer: Answer, settings: Settings, workers: int
 ) -> Callable[[], None]:
-    """`lsr/api/plan`: a JSON body of POST /plan in, the same JSON as the REST reply out.
+    """A public zenoh API key (`lsr/api/plan`, `lsr/experience/*`): the JSON body of the REST
+    route in, the same JSON as its reply out, errors as {"status", "detail"}.
 
     Like REST, it sheds load: a query arriving while `settings.max_queued` wait gets 503 at
     once, and one still queued at its deadline (LSR_DEADLINE_S from arrival) gets 503 unworked.
@@ -93,7 +105,7 @@ def serve_plan_queries(
             return
         pending.put((time.monotonic(), query))
 
-    queryable = session.declare_queryable(API_PLAN_KEY, arrived, complete=True)
+    queryable = session.declare_queryable(key, arrived, complete=True)
 
     def work() -> None:
         while (item := pending.get()) is not None:
@@ -103,19 +115,19 @@ def serve_plan_queries(
                 if time.monotonic() >= deadline:
                     overloaded(query, "waited past its deadline")
                 else:
-                    answer_plan_query(query, gateway, settings.max_body_bytes, deadline)
+                    answer_query(query, answer, settings.max_body_bytes, deadline)
             except Exception:  # a reply that could not be sent must not end the worker
-                log.exception("could not answer %s", API_PLAN_KEY)
+                log.exception("could not answer %s", key)
             finally:
                 finish([query])
             del item, query
 
-    for i in range(API_PLAN_WORKERS):
-        threading.Thread(target=work, name=f"api-plan#{i}", daemon=True).start()
+    for i in range(workers):
+        threading.Thread(target=work, name=f"{key}#{i}", daemon=True).start()
 
     def stop() -> None:
         queryable.undeclare()
-        for _ in range(API_PLAN_WORKERS):
+        for _ in range(workers):
             pending.put(None)
 
     return stop
@@ -128,23 +140,47 @@ def overloaded(query: zenoh.Query, why: str) -> None:
         finish([query])
 
 
-def answer_plan_query(
-    query: zenoh.Query, gateway: Gateway, max_bytes: int, deadline: float | None = None
-) -> None:
-    """Answer one `lsr/api/plan` query; every query gets a reply, an error one at worst."""
+def answer_query(query: zenoh.Query, answer: Answer, max_bytes: int, deadline: float) -> None:
+    """Answer one query; every query gets a reply, an error one at worst."""
     payload = query.payload.to_bytes() if query.payload is not None else b""
     try:
         if len(payload) > max_bytes:
             raise BodyError(413, ["body"], f"payload over {max_bytes} bytes", "too_large")
-        response, _ = gateway.plan(PlanRequest.model_validate(parse_json(payload)), deadline)
+        response = answer(parse_json(payload), str(query.key_expr), deadline)
     except Exception as exc:
         known = error_body(exc)
         if known is None:
-            log.exception("lsr/api/plan failed")
+            log.exception("%s failed", query.key_expr)
             known = (500, clip(f"{type(exc).__name__}: {exc}"))
         query.reply_err(plan_query_error(*known), encoding=JSON)
         return
     query.reply(query.key_expr, response.model_dump_json(), encoding=JSON)
+
+
+def public_queries(
+    session: zenoh.Session, gateway: Gateway, settings: Settings
+) -> Callable[[], None]:
+    """The zenoh twins of POST /plan and POST /experience."""
+
+    def plan(body: Any, _: str, deadline: float) -> BaseModel:
+        return gateway.plan(PlanRequest.model_validate(body), deadline)[0]
+
+    def experience(body: Any, key: str, deadline: float) -> BaseModel:
+        request = ExperienceRequest.model_validate(body)
+        if key != experience_key(request.task):
+            raise FieldError("task", f"reported on {key}, the body says {request.task!r}")
+        return gateway.record(request, deadline)
+
+    stops = [
+        serve_queries(session, API_PLAN_KEY, plan, settings, API_PLAN_WORKERS),
+        serve_queries(session, EXPERIENCE_KEYS, experience, settings, 1),
+    ]
+
+    def stop_all() -> None:
+        for stop in stops:
+            stop()
+
+    return stop_all
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -158,7 +194,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             alive_key("gateway", settings.instance or new_instance_id())
         )
         app.state.gateway = Gateway(session, settings)
-        stop_queries = serve_plan_queries(session, app.state.gateway, settings)
+        stop_queries = public_queries(session, app.state.gateway, settings)
         yield
         stop_queries()
         token.undeclare()
@@ -181,6 +217,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         TaskNotServed,
         ServiceUnavailable,
         RemoteError,
+        ExperienceError,
         RequestValidationError,
     ):
         app.add_exception_handler(kind, known_error)
@@ -221,6 +258,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         headers = {"Server-Timing": timing}
         return Response(response.model_dump_json(), media_type="application/json", headers=headers)
 
+    @app.post("/experience", response_model=ExperienceResponse)
+    def experience(body: ExperienceRequest, request: Request) -> ExperienceResponse:
+        """What a robot did, for the roadmap to grow from (`lsr roadmap grow`)."""
+        return gateway(request).record(body, deadline(request))
+
     @app.post("/execute")
     def execute(body: ExecuteRequest, request: Request) -> ExecuteResponse:
         return gateway(request).execute(body)
@@ -231,7 +273,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # Outermost: a request waiting for admission is not read yet. /execute holds its worker
     # for many seconds, so it has its own, smaller share.
     for paths, limit in [
-        (frozenset({"/plan", "/render"}), settings.max_in_flight),
+        (frozenset({"/plan", "/render", "/experience"}), settings.max_in_flight),
         (frozenset({"/execute", "/execute/stream"}), settings.max_executing),
     ]:
         app.add_middleware(

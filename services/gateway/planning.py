@@ -12,11 +12,14 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from services.data.experience import ExperienceLog
 from services.gateway.schemas import (
     Endpoint,
     ExecuteRequest,
     ExecuteResponse,
     ExecuteStep,
+    ExperienceRequest,
+    ExperienceResponse,
     Health,
     Instance,
     Plan,
@@ -30,6 +33,7 @@ from shared.bus import (
     JSON,
     SERVICES,
     CallTiming,
+    ServiceUnavailable,
     encoder_image_size,
     instances,
     robot_plan_key,
@@ -39,6 +43,7 @@ from shared.images import ImageError, PngCache, decode_image, png_b64
 from shared.messages import RunRequest, WireArray
 from shared.settings import Settings
 from shared.tasks import declare_task, get_task, has_simulator
+from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
 from shared.validation import FieldError, parse_state
 
@@ -125,7 +130,11 @@ class Gateway:
                 status="ok" if all(per_task) else "unavailable",
                 instances=[
                     Instance(
-                        instance=i.instance, task=i.task, model_id=i.model_id, uptime_s=i.uptime_s
+                        instance=i.instance,
+                        task=i.task,
+                        model_id=i.model_id,
+                        uptime_s=i.uptime_s,
+                        roadmap_version=i.roadmap_version,
                     )
                     for infos in per_task
                     for i in infos
@@ -226,6 +235,30 @@ class Gateway:
             progress=progress,
             appearance=request.appearance,
         )
+
+    def record(
+        self, request: ExperienceRequest, deadline: float | None = None
+    ) -> ExperienceResponse:
+        """Append a robot's reported actions to the task's experience folder (images at the
+        model's size; no states: a robot does not know them)."""
+        task = self.served(request.task)
+        if self.settings.experience_dir is None:
+            raise ServiceUnavailable("experience", "not recorded here: LSR_EXPERIENCE_DIR is unset")
+        size = self.image_size(task, deadline or time.monotonic() + self.settings.deadline_s)
+        logic = get_task(task)
+        before, after, actions = [], [], []
+        for i, row in enumerate(request.tuples):
+            before.append(decode_b64_image(f"tuples.{i}.before", row.before, size))
+            after.append(decode_b64_image(f"tuples.{i}.after", row.after, size))
+            try:
+                action = None if row.action is None else logic.parse_action(row.action)
+            except TaskError as exc:
+                raise FieldError(f"tuples.{i}.action", str(exc)) from None
+            actions.append(logic.action_to_array(action))
+        spec = TaskSpec(logic.spec.task, logic.spec.action, None)
+        log = ExperienceLog(self.settings.experience_dir / task, spec, size, source="robots")
+        total = log.append(np.stack(before), np.stack(after), np.stack(actions))
+        return ExperienceResponse(recorded=len(actions), total=total)
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:
         run = self.run_request(request)

@@ -61,6 +61,24 @@ class Endpoint(Strict):
         return self
 
 
+class ExperienceTuple(Strict):
+    """One executed action as the robot saw it; `action` null for a second look at a scene
+    nothing changed (or an action that changed nothing)."""
+
+    before: str = Field(description="PNG or JPEG, base64: what the robot saw before acting")
+    action: dict[str, Any] | None = Field(description="the action executed, as in a plan")
+    after: str = Field(description="PNG or JPEG, base64: what it saw after")
+
+
+class ExperienceRequest(TaskRequest):
+    tuples: list[ExperienceTuple] = Field(min_length=1, max_length=64)
+
+
+class ExperienceResponse(BaseModel):
+    recorded: int = Field(description="tuples recorded from this report")
+    total: int = Field(description="tuples recorded for the task so far")
+
+
 class StateEndpoint(Strict):
     state: dict[str, Any]
 
@@ -154,6 +172,9 @@ class Instance(BaseModel):
     task: str
     model_id: str
     uptime_s: float
+    roadmap_version: str | None = Field(
+        None, description="planners: the roadmap version planned with (it grows while serving)"
+    )
 
 
 class ServiceHealth(BaseModel):

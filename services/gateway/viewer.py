@@ -86,6 +86,7 @@ class RoadmapNode(BaseModel):
 class RoadmapGraph(BaseModel):
     task: str
     model_id: str
+    roadmap_version: str | None = Field(None, description="which version of a growing roadmap")
     layout: str = Field(description="how x and y were found")
     nodes: list[RoadmapNode]
     edges: list[tuple[int, int, int]] = Field(description="node, node, supporting action pairs")
@@ -130,7 +131,7 @@ class Viewer:
         self.gateway = gateway
         self._graphs: dict[str, tuple[RoadmapGraph, np.ndarray]] = {}  # task -> graph, latents
         self._lock = threading.Lock()
-        self.node_pngs: LruCache[tuple[str, str, int], bytes] = LruCache()
+        self.node_pngs: LruCache[tuple[str, str, bytes], bytes] = LruCache()
 
     def _call(self, task: str, service: str, operation: str, request: BaseModel, kind: type) -> Any:
         client = self.gateway.client(task)
@@ -154,7 +155,8 @@ class Viewer:
         )
         with self._lock:
             cached = self._graphs.get(task)
-        if cached is not None and cached[0].model_id == reply.model_id:
+        served = (reply.model_id, reply.roadmap_version)
+        if cached is not None and (cached[0].model_id, cached[0].roadmap_version) == served:
             return cached
         latents = reply.node_latents.numpy()
         edges, weights = reply.edges.numpy(), reply.edge_weights.numpy()
@@ -164,6 +166,7 @@ class Viewer:
         graph = RoadmapGraph(
             task=task,
             model_id=reply.model_id,
+            roadmap_version=reply.roadmap_version,
             layout="classical MDS of hop distances",
             nodes=[
                 RoadmapNode(id=i, x=float(x), y=float(y), state=states[i], purity=purity[i])
@@ -179,7 +182,7 @@ class Viewer:
         graph, latents = self.graph(task)
         if not 0 <= node < len(latents):
             raise HTTPException(404, f"node {node} is not in the roadmap (it has {len(latents)})")
-        key = (task, graph.model_id, node)
+        key = (task, graph.model_id, latents[node].tobytes())  # ids change as roadmaps grow
         cached = self.node_pngs.get(key)
         if cached is not None:
             return cached

@@ -4,21 +4,25 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from services.planner.knowing import check_ends, load_calibration
+from services.planner.knowing import Calibration, check_ends, load_calibration
 from services.planner.roadmap import Roadmap
-from services.planner.versions import roadmap_dir
+from services.planner.versions import current_version, version_dir
 from services.runtime import ServiceContext
 from shared.bus import Handler
+from shared.checkpoint import verify
 from shared.messages import GraphReply, GraphRequest, PathsReply, PathsRequest, WireArray, unpack
 from shared.plans import UnknownImageError
 from shared.validation import FieldError, check_latents, check_task
 
 log = logging.getLogger(__name__)
+RELOAD_S = 1.0  # how often a planner looks for a new roadmap version
 
 
 def node_labels(folder: Path, nodes: int) -> tuple[list[Any], list[float]] | None:
@@ -40,14 +44,60 @@ def node_labels(folder: Path, nodes: int) -> tuple[list[Any], list[float]] | Non
         return None
 
 
+@dataclass(frozen=True)
+class Served:
+    """One roadmap version with what plans with it; replaced whole, never changed."""
+
+    version: str
+    roadmap: Roadmap
+    calibration: Calibration
+    labels: tuple[list[Any], list[float]] | None
+
+    @classmethod
+    def load(cls, model_dir: Path) -> Served:
+        version = current_version(model_dir)
+        folder = version_dir(model_dir, version)
+        if not verify(folder):
+            log.warning("%s: not sealed: served unverified", folder)
+        roadmap = Roadmap.load(folder)
+        labels = node_labels(folder, roadmap.num_nodes)
+        return cls(version, roadmap, load_calibration(folder, roadmap), labels)
+
+
+def watch_versions(
+    model_dir: Path, served: list[Served], context: ServiceContext, every_s: float = RELOAD_S
+) -> threading.Thread:
+    """Take a new current version when `lsr roadmap grow` publishes one: loaded beside the
+    old, then swapped in one assignment, so no request fails or sees half of each. A version
+    that does not load is logged and the old one kept."""
+
+    def run() -> None:
+        while not context.stopping.wait(every_s):
+            try:
+                if current_version(model_dir) == served[0].version:
+                    continue
+                fresh = Served.load(model_dir)
+            except (OSError, ValueError) as exc:
+                log.warning("roadmap version not taken: %s", exc)
+                continue
+            served[0] = fresh
+            context.status["roadmap_version"] = fresh.version
+            log.info("planning with roadmap %s", fresh.version)
+
+    thread = threading.Thread(target=run, name="roadmap-versions", daemon=True)
+    thread.start()
+    return thread
+
+
 def setup(context: ServiceContext) -> dict[str, Handler]:
-    folder = roadmap_dir(context.model.directory)
-    roadmap = Roadmap.load(folder)
-    calibration = load_calibration(folder, roadmap)
+    served = [Served.load(context.model.directory)]
+    context.status["roadmap_version"] = served[0].version
+    watch_versions(context.model.directory, served, context, every_s=RELOAD_S)
     dim, task = context.model.latent_dim, context.model.task
-    labels = node_labels(folder, roadmap.num_nodes)
 
     def paths(payload: bytes) -> PathsReply:
+        now = served[0]  # one version for the whole request
+        roadmap, calibration = now.roadmap, now.calibration
         request = unpack(payload, PathsRequest)
         check_task(request.task, task)
         z_start = check_latents("z_start", request.z_start, dim, ndim=1)
@@ -70,6 +120,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
                 model_id=context.model.model_id,
                 reason=refused.reason,
                 match={end: m.to_json() for end, m in refused.match.items()},
+                roadmap_version=now.version,
             )
         start, goal = matched["start"].node, matched["goal"].node
         found = roadmap.shortest_paths(start, goal, max_paths=request.max_plans)
@@ -82,10 +133,13 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             model_id=context.model.model_id,
             reason=None if found else "start and goal are not connected in the roadmap",
             match={end: m.to_json() for end, m in matched.items()},
+            roadmap_version=now.version,
         )
 
     def graph(payload: bytes) -> GraphReply:
         check_task(unpack(payload, GraphRequest).task, task)
+        now = served[0]
+        roadmap, labels = now.roadmap, now.labels
         return GraphReply(
             node_latents=WireArray.of(roadmap.nodes.astype(np.float32).reshape(-1, dim)),
             edges=WireArray.of(roadmap.edges.astype(np.int64).reshape(-1, 2)),
@@ -93,6 +147,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             states=None if labels is None else labels[0],
             purity=None if labels is None else labels[1],
             model_id=context.model.model_id,
+            roadmap_version=now.version,
         )
 
     return {"paths": paths, "graph": graph}

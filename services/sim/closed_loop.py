@@ -13,7 +13,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from services.data.experience import Recorder
+from services.data.experience import Record, Recorder
 from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
 from shared.plans import UnknownImageError, VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
@@ -53,7 +53,7 @@ def run_episode(
     max_steps: int = 20,
     max_plans: int = 8,
     on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
-    record: Recorder | None = None,
+    record: Record | None = None,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 

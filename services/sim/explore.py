@@ -28,12 +28,14 @@ from services.planner.action_plans import ActionPlanner
 from services.planner.build import load_labels
 from services.planner.grow import grow, grow_model, load_members
 from services.planner.members import Members
-from services.planner.roadmap import Roadmap
+from services.planner.roadmap import Roadmap, pair_distances
 from services.planner.versions import roadmap_dir
 from services.sim.worlds import has_world, make_world
 from shared.appearance import trained_appearance
 from shared.tasks.base import IllegalActionError, Task, WorldError
 from shared.tasks.spec import ArraySpec
+
+NEAR = 8  # targets drawn among this many nearest candidate nodes
 
 
 @dataclass(frozen=True)
@@ -76,14 +78,18 @@ def spec_action(spec: ArraySpec, rng: np.random.Generator) -> np.ndarray:
     return np.asarray(values, dtype=spec.dtype).reshape(spec.shape)
 
 
-def _target(roadmap: Roadmap, node: int, rng: np.random.Generator) -> int:
-    """A node to head for: another component where there is one, else a node without an edge
-    from here."""
+def _target(roadmap: Roadmap, node: int, rng: np.random.Generator, near: int = NEAR) -> int:
+    """A node to head for: one of the `near` nodes closest in latent space among those in
+    other components, else among those without an edge from here (in an action-shaped
+    latent space, one action apart is close)."""
     component, _ = shape_of(roadmap)
     others = np.flatnonzero(component != component[node])
     if not len(others):
         others = np.setdiff1d(np.arange(roadmap.num_nodes), [node, *roadmap.neighbours(node)])
-    return int(rng.choice(others)) if len(others) else node
+    if not len(others):
+        return node
+    gaps = pair_distances(roadmap.nodes[others], roadmap.nodes[node], roadmap.config.metric)
+    return int(rng.choice(others[np.argsort(gaps)[:near]]))
 
 
 def explore(

@@ -1,0 +1,195 @@
+"""Experience grows small roadmaps without retraining (issue 22): the figures and the figure.
+
+  explore  A copy of the model; Table I on unseen test pairs; then `lsr explore` in steps of
+           --step actions up to --budget, Table I and the roadmap's components after each;
+           the closed loop in simulation at the end.
+  loop     A copy of the model; --pairs ordinary closed-loop tasks in simulation recording
+           what they did; the roadmap grown from it; Table I (detour ratio) before and after.
+  timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
+
+Each mode prints one JSON line and writes OUT/results.json; explore plots All and the
+component count against the actions spent (--figure). The source model is never changed.
+
+  python benchmarks/bench_experience.py explore --model runs/box500 \
+      --test data/box_stacking/test --budget 2000 --step 250 --out runs/experience/box500
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.cli.common import single_thread_torch
+from services.planner.eval_vfm import run_vfm_eval
+from services.planner.grow import grow_model
+from services.planner.roadmap import Roadmap
+from services.planner.versions import roadmap_dir
+from services.sim.explore import ExploreConfig, explore, shape_of
+
+TABLE = ("all", "any", "trans", "detour_ratio")
+
+
+def table1(model: Path, test: Path, pairs: int) -> dict[str, Any]:
+    row, _ = run_vfm_eval(model, test, pairs=pairs, seed=0)
+    roadmap = Roadmap.load(roadmap_dir(model))
+    return {
+        **{k: row.get(k) for k in TABLE},
+        "nodes": roadmap.num_nodes,
+        "edges": len(roadmap.edges),
+        "components": int(shape_of(roadmap)[0].max() + 1),
+    }
+
+
+def closed_loop(model: Path, pairs: int, experience: Path | None = None) -> dict[str, Any]:
+    from services.data.experience import ExperienceLog, Recorder
+    from services.planner.action_plans import ActionPlanner
+    from services.sim.closed_loop import evaluate_system
+    from services.sim.worlds import make_world
+
+    planner = ActionPlanner.from_model_dir(model)
+    task = planner.task
+    record = None
+    if experience is not None:
+        record = Recorder(ExperienceLog(experience, task.spec, planner.image_size), task)
+    with make_world(task.name, planner.image_size) as world:
+        result = evaluate_system(planner, world, task, pairs, seed=1, record=record)
+    return {k: result[k] for k in ("success", "actions_executed", "steps_over_optimal", "outcomes")}
+
+
+def copy_model(source: Path, out: Path) -> Path:
+    model = out / "model"
+    if model.exists():
+        shutil.rmtree(model)
+    shutil.copytree(source, model, ignore=shutil.ignore_patterns("experience"))
+    return model
+
+
+def run_explore(args: argparse.Namespace) -> dict[str, Any]:
+    model = copy_model(args.model, args.out)
+    experience = args.out / "experience"
+    shutil.rmtree(experience, ignore_errors=True)
+    rows = [{"actions": 0, **table1(model, args.test, args.pairs)}]
+    print(json.dumps(rows[-1]), flush=True)
+    spent, seed = 0, args.seed
+    while spent < args.budget and rows[-1]["all"] < args.stop_at:
+        step = min(args.step, args.budget - spent)
+        cfg = ExploreConfig(actions=step, seed=seed)
+        report = explore(model, cfg, experience, args.data)
+        spent, seed = spent + step, seed + 1
+        growth = report["growth"]
+        kept = ("held_for_review", "contradicted_edges", "new_nodes", "new_edges")
+        rows.append(
+            {
+                "actions": spent,
+                "refused": report["refused"],
+                **table1(model, args.test, args.pairs),
+                **{k: growth[k] for k in kept},
+                "grow_seconds": growth["seconds"],
+            }
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    result: dict[str, Any] = {"rows": rows}
+    if args.closed_loop:
+        result["closed_loop"] = closed_loop(model, args.closed_loop)
+    if args.figure:
+        plot(rows, args.figure, args.label)
+    return result
+
+
+def run_loop(args: argparse.Namespace) -> dict[str, Any]:
+    model = copy_model(args.model, args.out)
+    experience = args.out / "experience"
+    shutil.rmtree(experience, ignore_errors=True)
+    before = table1(model, args.test, args.pairs)
+    print(json.dumps({"before": before}), flush=True)
+    loop = closed_loop(model, args.loop_pairs, experience)
+    growth = grow_model(model, [experience], args.data)
+    after = table1(model, args.test, args.pairs)
+    return {"before": before, "closed_loop": loop, "growth": growth, "after": after}
+
+
+def run_timing(args: argparse.Namespace) -> dict[str, Any]:
+    """Members first (a v1 roadmap without them encodes its training data), then the growth."""
+    from services.data.experience import ExperienceLog
+    from services.encoder.checkpoint import load_vae
+    from services.planner.grow import load_members
+    from shared.dataset import load_dataset
+
+    model = copy_model(args.model, args.out)
+    vae, _ = load_vae(model / "vae")
+    members = load_members(model, vae, args.data)
+    members.save(roadmap_dir(model))  # as a roadmap built today keeps them
+    data = load_dataset(args.experience)
+    new = args.out / "new"
+    shutil.rmtree(new, ignore_errors=True)
+    log = ExperienceLog(new, data.spec, data.image_size)
+    pick = np.arange(args.new) % len(data)
+    log.append(data.image1[pick], data.image2[pick], data.u[pick], data.state1[pick],
+               data.state2[pick])  # fmt: skip
+    started = time.perf_counter()
+    growth = grow_model(model, [new])
+    return {
+        "roadmap_tuples": len(members.a),
+        "new_tuples": args.new,
+        "seconds": time.perf_counter() - started,
+        "grow_seconds": growth["seconds"],
+    }
+
+
+def plot(rows: list[dict[str, Any]], path: Path, label: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    spent = [r["actions"] for r in rows]
+    fig, left = plt.subplots(figsize=(6.4, 3.6))
+    left.plot(spent, [r["all"] for r in rows], "o-", color="tab:blue", label="All (%)")
+    left.set_xlabel("actions spent exploring")
+    left.set_ylabel("All: every shortest plan valid (%)", color="tab:blue")
+    left.set_ylim(0, 101)
+    right = left.twinx()
+    right.plot(spent, [r["components"] for r in rows], "s--", color="tab:red")
+    right.set_ylabel("roadmap components", color="tab:red")
+    right.set_ylim(bottom=0)
+    left.set_title(f"Exploration grows the roadmap, VAE fixed ({label})")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("mode", choices=["explore", "loop", "timing"])
+    parser.add_argument("--model", required=True, type=Path)
+    parser.add_argument("--test", type=Path, default=Path("data/box_stacking/test"))
+    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--data", type=Path, help="the model's training data (older roadmaps)")
+    parser.add_argument("--pairs", type=int, default=1000, help="Table I test pairs")
+    parser.add_argument("--budget", type=int, default=2000)
+    parser.add_argument("--step", type=int, default=250)
+    parser.add_argument("--stop-at", type=float, default=101.0, help="stop once All reaches it")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--closed-loop", type=int, default=0, help="closed-loop tasks at the end")
+    parser.add_argument("--loop-pairs", type=int, default=100, help="loop mode: tasks to run")
+    parser.add_argument("--experience", type=Path, help="timing mode: tuples to grow from")
+    parser.add_argument("--new", type=int, default=1000, help="timing mode: tuples to grow")
+    parser.add_argument("--figure", type=Path)
+    parser.add_argument("--label", default="")
+    args = parser.parse_args()
+    single_thread_torch()
+    args.out.mkdir(parents=True, exist_ok=True)
+    run = {"explore": run_explore, "loop": run_loop, "timing": run_timing}[args.mode]
+    result = {"mode": args.mode, "model": str(args.model), **run(args)}
+    (args.out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
