@@ -1,15 +1,15 @@
 """`lsr roadmap grow`: a roadmap learns from experience without retraining the VAE.
 
-The VAE stays fixed, and so do epsilon and the existing nodes (their ids and latents, so plans
-and labels stay stable). The new images are encoded and joined by the roadmap's own rule: an
-image within epsilon of one node's members joins that node (repeated until nothing changes,
-since a joined image can bring another within reach); images left over form regions among
-themselves, and a region as large as the roadmap's pruning threshold that an action pair links
-to the rest becomes a new node. Then every action pair's regions give the edges, as Algorithm 1's
-phase 3. Guards against bad experience:
-- an image within epsilon of two nodes is held (it would merge them), and so is a tuple with an
-  image that ends up in no node: both are kept for review (`review/`), not added blindly; each
-  growth tries them again, since more experience may place them;
+The VAE and epsilon stay fixed. Growth is Algorithm 1's phases 2 and 3 over the roadmap's points
+and the new ones together: the valid regions are the connected components of the epsilon-graph
+of all of them, so a new image joins the region it falls in; a region holding built nodes is
+one node (two built nodes that new images join become one, as building on all the data would
+have made them), which keeps the built latent and its id, less the ids merged away; a region of
+new images only becomes a node when it is as large as the pruning threshold (at least
+NEW_NODE_MIN) and an action pair links it to the rest. Then every action pair's regions give the
+edges. Guards against bad experience:
+- a tuple with an image in no node is kept for review (`review/`), not added blindly; each
+  growth tries it again, since more experience may place it;
 - an executed action after which the scene is in the node it started from is a no-action
   observation, not an edge;
 - an edge whose action, executed from its node, led elsewhere is contradicted; an edge with
@@ -57,44 +57,28 @@ _CDIST = {"l1": "cityblock", "l2": "euclidean", "inf": "chebyshev"}
 _BLOCK = 1 << 22  # distances per block
 
 
-def _touching(
-    pending: np.ndarray, anchors: np.ndarray, anchor_node: np.ndarray, epsilon: float, metric: str
-) -> list[set[int]]:
-    """For each pending point, the nodes of the anchors strictly within epsilon of it."""
-    found: list[set[int]] = [set() for _ in range(len(pending))]
-    if not len(anchors):
-        return found
-    rows = max(1, _BLOCK // len(anchors))
-    for s in range(0, len(pending), rows):
-        near = cdist(pending[s : s + rows], anchors, _CDIST[metric]) < epsilon
-        for i, j in zip(*np.nonzero(near), strict=True):
-            found[s + i].add(int(anchor_node[j]))
-    return found
+def regions(
+    points: np.ndarray, point_node: np.ndarray, k0: int, epsilon: float, metric: str, min_new: int
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Phase 2 over all points, mapped onto the built nodes.
 
-
-def attach(
-    points: np.ndarray, node: np.ndarray, epsilon: float, metric: str
-) -> tuple[np.ndarray, np.ndarray]:
-    """Join unattached points (node -1) to the one node they lie within epsilon of, until no
-    more join; (nodes, ambiguous): points near two nodes stay -1 and are marked ambiguous."""
-    node = node.copy()
-    ambiguous = np.zeros(len(node), bool)
-    anchors = np.flatnonzero(node >= 0)
-    while True:
-        pending = np.flatnonzero((node < 0) & ~ambiguous)
-        if not len(pending) or not len(anchors):
-            return node, ambiguous
-        touched = _touching(points[pending], points[anchors], node[anchors], epsilon, metric)
-        joined = []
-        for p, nodes in zip(pending.tolist(), touched, strict=True):
-            if len(nodes) > 1:
-                ambiguous[p] = True
-            elif nodes:
-                node[p] = nodes.pop()
-                joined.append(p)
-        if not joined:
-            return node, ambiguous
-        anchors = np.asarray(joined)  # only the newly joined can bring others within reach
+    point_node: the built node (of k0) of each point (-1: pruned, or new). Returns the node of every
+    point (built ids; candidate new nodes numbered after them), the id each built node became
+    (the smallest id of those its region joined), and the members of each candidate new node.
+    """
+    labels, _ = connected_regions(points.astype(np.float64), epsilon, metric)
+    built = point_node >= 0
+    owner = np.full(int(labels.max()) + 1, k0, np.int64)  # k0: no built node in the region
+    np.minimum.at(owner, labels[built], point_node[built])
+    became = np.arange(k0)
+    became[point_node[built]] = owner[labels[built]]
+    node = np.where(owner[labels] < k0, owner[labels], -1)
+    order = np.argsort(labels, kind="stable")
+    groups = np.split(order, np.cumsum(np.bincount(labels))[:-1])
+    fresh = [g for g in groups if owner[labels[g[0]]] == k0 and len(g) >= min_new]
+    for i, ids in enumerate(fresh):
+        node[ids] = k0 + i
+    return node, became, fresh
 
 
 def _edges(node: np.ndarray, a: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -146,30 +130,22 @@ def grow(
     k0 = roadmap.num_nodes
     everything = members + new
     base = len(members.points)
-    node = np.concatenate([roadmap.point_node, np.full(len(new.points), -1, np.int64)])
-    node, ambiguous = attach(everything.points.astype(np.float64), node, epsilon, metric)
-
-    # Leftovers form regions among themselves; a large one linked by an action pair is a node.
-    min_samples = max(NEW_NODE_MIN, int(roadmap.stats.get("min_samples", 1)))
-    loose = np.flatnonzero((node < 0) & ~ambiguous)
-    new_nodes: list[np.ndarray] = []
-    if len(loose):
-        labels, _ = connected_regions(everything.points[loose].astype(np.float64), epsilon, metric)
-        for region in range(int(labels.max()) + 1):
-            ids = loose[labels == region]
-            if len(ids) >= min_samples:
-                node[ids] = k0 + len(new_nodes)
-                new_nodes.append(ids)
-    k = k0 + len(new_nodes)
-    edges, weights = _edges(node, everything.a, k)
-    linked = np.zeros(k, bool)
+    point_node = np.concatenate([roadmap.point_node, np.full(len(new.points), -1, np.int64)])
+    built_min = roadmap.config.min_samples or int(roadmap.stats.get("min_samples", 1))
+    node, became, fresh = regions(
+        everything.points, point_node, k0, epsilon, metric, max(NEW_NODE_MIN, built_min)
+    )
+    # A new node needs an action pair linking it to the rest (the builder prunes isolated ones).
+    edges, _ = _edges(node, everything.a, k0 + len(fresh))
+    linked = np.zeros(k0 + len(fresh), bool)
     linked[edges.ravel()] = True
-    keep = np.ones(k, bool)
-    keep[k0:] = linked[k0:]  # built nodes stay (stable ids); new ones need an edge
-    renumber = np.cumsum(keep) - 1
-    for ids, kept in zip(new_nodes, keep[k0:], strict=True):
+    keep = np.zeros(k0 + len(fresh), bool)
+    keep[np.unique(became)] = True  # built nodes, less those merged into another
+    keep[k0:] = linked[k0:]
+    for ids, kept in zip(fresh, keep[k0:], strict=True):
         if not kept:
             node[ids] = -1
+    renumber = np.cumsum(keep) - 1
     node = np.where(node >= 0, renumber[np.maximum(node, 0)], -1)
     k = int(keep.sum())
     edges, weights = _edges(node, everything.a, k)
@@ -184,28 +160,34 @@ def grow(
         keep_edge = np.array([i * k + j not in gone for i, j in edges.tolist()], bool)
         edges, weights = edges[keep_edge], weights[keep_edge]
 
-    # Held for review: new tuples with an image in no node (ambiguous ones among them).
+    # Held for review: new tuples with an image in no node.
     n1, n2 = node[0::2], node[1::2]
     held = tuples_new[(n1[tuples_new] < 0) | (n2[tuples_new] < 0)]
     moved = new.a == 1
     same_node = moved & (n1[tuples_new] >= 0) & (n1[tuples_new] == n2[tuples_new])
 
+    # A merged node keeps the latent of its largest built part; a new one, the member closest
+    # to its mean (as the builder picks).
+    largest = {}
+    for old in np.argsort(-roadmap.node_sizes, kind="stable").tolist():
+        largest.setdefault(int(became[old]), old)
     nodes = np.concatenate(
-        [roadmap.nodes]
+        [roadmap.nodes[[largest[int(b)] for b in np.flatnonzero(keep[:k0])]]]
         + [
             everything.points[_representative(everything.points, ids, metric)][None]
-            for ids, kept in zip(new_nodes, keep[k0:], strict=True)
+            for ids, kept in zip(fresh, keep[k0:], strict=True)
             if kept
         ]
     ).astype(np.float32)
     sizes = np.bincount(node[node >= 0], minlength=k).astype(np.int64)
-    old_edges = {(int(i), int(j)) for i, j in roadmap.edges}
+    old_ids = renumber[became]  # where each built node is now
+    old_edges = {(int(old_ids[i]), int(old_ids[j])) for i, j in roadmap.edges}
     report = {
         "tuples": len(new.a),
         "action_pairs": int(moved.sum()),
         "images_joined": int((node[base:] >= 0).sum()),
-        "images_ambiguous": int(ambiguous[base:].sum()),
-        "new_nodes": k - k0,
+        "merged_nodes": int(k0 - keep[:k0].sum()),
+        "new_nodes": int(keep[k0:].sum()),
         "new_edges": len({(int(i), int(j)) for i, j in edges} - old_edges),
         "edge_weight_added": int(weights.sum() - roadmap.edge_weights.sum()),
         "no_change": int(same_node.sum()),

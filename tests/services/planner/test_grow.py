@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from services.planner.grow import attach, contradictions, grow
+from services.planner.grow import contradictions, grow, regions
 from services.planner.members import Members
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from shared.tasks import get_task
@@ -41,17 +41,19 @@ BASE = [("A", "A", 0), ("B", "B", 0), ("C", "C", 0), ("D", "D", 0)] * 3 + [
 ]
 
 
-def test_attach_joins_through_new_points_and_holds_what_touches_two_nodes():
-    points = np.array([[0.0], [10.0], [0.9], [1.8], [5.0]])
-    node = np.array([0, 1, -1, -1, -1])
-    joined, ambiguous = attach(points, node, epsilon=1.0, metric="l1")
-    assert joined.tolist() == [0, 1, 0, 0, -1]  # 1.8 joins through 0.9, 5.0 through nothing
-    points = np.array([[0.0], [2.0], [1.0]])
-    joined, ambiguous = attach(points, np.array([0, 1, -1]), epsilon=1.5, metric="l1")
-    assert joined.tolist() == [0, 1, -1] and ambiguous.tolist() == [False, False, True]
+def test_regions_join_new_points_and_merge_the_nodes_they_bridge():
+    points = np.array([[0.0], [10.0], [0.9], [1.8], [5.0], [20.0], [20.5], [21.0]])
+    built = np.array([0, 1, -1, -1, -1, -1, -1, -1])
+    node, became, fresh = regions(points, built, 2, epsilon=1.0, metric="l1", min_new=3)
+    assert node.tolist()[:5] == [0, 1, 0, 0, -1]  # 1.8 joins through 0.9; 5.0 joins nothing
+    assert became.tolist() == [0, 1] and [f.tolist() for f in fresh] == [[5, 6, 7]]
+    assert node.tolist()[5:] == [2, 2, 2]  # a candidate new node
+    bridged = np.array([[0.0], [2.0], [1.0]])
+    node, became, fresh = regions(bridged, np.array([0, 1, -1]), 2, 1.5, "l1", 3)
+    assert node.tolist() == [0, 0, 0] and became.tolist() == [0, 0] and not fresh
 
 
-def test_growth_adds_the_edges_experience_shows_and_keeps_node_ids():
+def test_growth_adds_the_edges_experience_shows_and_keeps_the_built_nodes():
     roadmap, m = base(BASE)
     assert roadmap.num_nodes == 4 and len(roadmap.edges) == 2
     experience = members([("B", "C", 3), ("A", "A", 4), ("far", "far", 5)], seed=1)
@@ -99,3 +101,26 @@ def test_members_add_keeps_order(rows):
     first, second = members(rows, 0), members(rows, 1)
     both = first + second
     assert np.array_equal(both.points[2:], second.points) and len(both.a) == 2
+
+
+def test_images_bridging_two_nodes_merge_them_as_building_on_all_the_data_would():
+    roadmap, m = base(BASE)
+    step = roadmap.epsilon / 2
+    chain = np.arange(CENTRES["A"] + step, CENTRES["B"], step)
+    if len(chain) % 2:  # pairs of points
+        chain = np.append(chain, chain[-1])
+    points = np.stack([chain, np.zeros_like(chain)], axis=1).astype(np.float32)
+    n = len(points) // 2
+    bridge = Members(
+        points=points,
+        errors=np.zeros((2 * n, 2), np.float32),
+        actions=np.full((n, 4), -1, np.int8),
+        a=np.zeros(n, np.uint8),
+        states=np.zeros((2 * n, 0), np.int8),
+        has_state=np.zeros(2 * n, np.uint8),
+    )
+    grown, _, report = grow(roadmap, m, bridge, TASK)
+    assert report["merged_nodes"] == 1 and grown.num_nodes == 3
+    a, b = (roadmap.nearest_node(np.array([CENTRES[x], 0.0])) for x in "AB")
+    assert grown.nearest_node(roadmap.nodes[a]) == grown.nearest_node(roadmap.nodes[b])
+    assert report["components"] == [2, 2] and len(grown.edges) == 1  # A-B became one node
