@@ -29,8 +29,9 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.encoder.checkpoint import encode_images, load_vae
-from services.planner.build import encode_pairs, interleave, load_labels
+from services.planner.build import load_labels
 from services.planner.evaluate import evaluate_plans, sample_test_pairs, shows_everything
+from services.planner.members import encode_pairs, interleave
 from services.planner.regions import metric_p
 from services.planner.roadmap import Roadmap
 from services.planner.versions import roadmap_dir

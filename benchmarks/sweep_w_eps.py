@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 
 from services.encoder.checkpoint import encode_images, load_vae
-from services.planner.build import default_metric, encode_pairs, interleave
+from services.planner.build import default_metric
 from services.planner.evaluate import evaluate_plans, label_nodes, sample_test_pairs
+from services.planner.members import encode_pairs, interleave
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from shared.dataset import load_dataset
 

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 from services.encoder.checkpoint import encode_images, load_vae
-from services.planner.build import interleave
 from services.planner.evaluate import sample_test_pairs
+from services.planner.members import MEMBERS, Members, interleave
 from services.planner.roadmap import Roadmap
 from services.planner.versions import roadmap_dir
 from shared.dataset import load_dataset
@@ -60,18 +60,22 @@ def run_data_eval(
     started = time.perf_counter()
     model_dir = Path(model_dir)
     vae, config = load_vae(model_dir / "vae")
-    roadmap = Roadmap.load(roadmap_dir(model_dir))
+    folder = roadmap_dir(model_dir)
+    roadmap = Roadmap.load(folder)
     train = load_dataset(train_dir or config["dataset"]["path"])
     test = load_dataset(test_dir)
     size = config["model"]["image_size"]
     if test.image_size != size:
         raise ValueError(f"test images are {test.image_size} px, the VAE takes {size} px")
-    if len(train) * 2 != len(roadmap.point_node):
+    if (folder / MEMBERS).is_file():  # kept since roadmaps grow: training data, experience
+        members = Members.load(folder).points
+    elif len(train) * 2 != len(roadmap.point_node):
         raise ValueError(
             f"{train_dir or config['dataset']['path']}: {2 * len(train)} images, the roadmap "
             f"was built on {len(roadmap.point_node)}; give the training set with --train"
         )
-    members = interleave(*(encode_images(vae, x)[0] for x in (train.image1, train.image2)))
+    else:
+        members = interleave(*(encode_images(vae, x)[0] for x in (train.image1, train.image2)))
     z1, z2 = encode_images(vae, test.image1)[0], encode_images(vae, test.image2)[0]
     n1, n2 = (np.asarray(roadmap.nearest_node(z), dtype=np.int64) for z in (z1, z2))
     h1 = held(roadmap, z1, n1, members, roadmap.point_node)
@@ -104,7 +108,7 @@ def run_data_eval(
     if train.episode is not None:
         episode_points = np.repeat(train.episode, 2)
         counts = [
-            len(set(roadmap.point_node[episode_points == e].tolist()) - {-1})
+            len(set(roadmap.point_node[: len(episode_points)][episode_points == e].tolist()) - {-1})
             for e in np.unique(train.episode)
         ]
         row["nodes_per_episode"] = {

@@ -10,7 +10,7 @@ import numpy as np
 
 from services.encoder.checkpoint import decode_latents, encode_images
 from services.encoder.model import VAE
-from services.planner.build import default_metric, interleave, load_model
+from services.planner.build import default_metric, load_model
 from services.planner.evaluate import (
     class_distances,
     demonstrated_reach,
@@ -20,6 +20,7 @@ from services.planner.evaluate import (
     shows_everything,
 )
 from services.planner.knowing import MatchError, load_calibration, match, reconstruction_errors
+from services.planner.members import interleave
 from services.planner.roadmap import Roadmap
 from services.planner.versions import roadmap_dir
 from services.sim.state_reader import StateReader, load_reader, read_states

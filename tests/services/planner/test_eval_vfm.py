@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from services.cli import main
-from services.planner.build import interleave
 from services.planner.evaluate import (
     evaluate_plans,
     label_nodes,
     sample_test_pairs,
     shows_everything,
 )
+from services.planner.members import interleave
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from services.sim.datagen import GenerateConfig, generate
 from shared.tasks import get_task
