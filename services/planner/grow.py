@@ -1,13 +1,12 @@
 """`lsr roadmap grow`: a roadmap learns from experience without retraining the VAE.
 
-The VAE and epsilon stay fixed. Growth is Algorithm 1's phases 2 and 3 over the roadmap's points
-and the new ones together: the valid regions are the connected components of the epsilon-graph
-of all of them, so a new image joins the region it falls in; a region holding built nodes is
-one node (two built nodes that new images join become one, as building on all the data would
-have made them), which keeps the built latent and its id, less the ids merged away; a region of
-new images only becomes a node when it is as large as the pruning threshold (at least
-NEW_NODE_MIN) and an action pair links it to the rest. Then every action pair's regions give the
-edges. Guards against bad experience:
+The VAE, epsilon, the built nodes (their ids and latents) and what each node is known by stay
+fixed. A new image joins the node the planner would match it to, where it is known there (the
+calibrated knowing test of `services.planner.knowing`): growth and planning place an image
+alike. Images no node knows form regions among themselves by the roadmap's epsilon, and a
+region as large as the pruning threshold (at least NEW_NODE_MIN images) that an action pair
+links to the rest becomes a new node. Then every action pair's nodes give the edges, as
+Algorithm 1's phase 3. Guards against bad experience:
 - a tuple with an image in no node is kept for review (`review/`), not added blindly; each
   growth tries it again, since more experience may place it;
 - an executed action after which the scene is in the node it started from is a no-action
@@ -23,6 +22,7 @@ from __future__ import annotations
 import json
 import time
 from collections import Counter, defaultdict
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,7 @@ from services.planner import versions
 from services.planner.build import LABELS
 from services.planner.evaluate import label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
-from services.planner.knowing import calibrate, save_calibration
+from services.planner.knowing import Calibration, load_calibration, match, save_calibration
 from services.planner.members import MEMBERS, Members
 from services.planner.regions import connected_regions
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap
@@ -57,28 +57,17 @@ _CDIST = {"l1": "cityblock", "l2": "euclidean", "inf": "chebyshev"}
 _BLOCK = 1 << 22  # distances per block
 
 
-def regions(
-    points: np.ndarray, point_node: np.ndarray, k0: int, epsilon: float, metric: str, min_new: int
-) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Phase 2 over all points, mapped onto the built nodes.
-
-    point_node: the built node (of k0) of each point (-1: pruned, or new). Returns the node of every
-    point (built ids; candidate new nodes numbered after them), the id each built node became
-    (the smallest id of those its region joined), and the members of each candidate new node.
-    """
-    labels, _ = connected_regions(points.astype(np.float64), epsilon, metric)
-    built = point_node >= 0
-    owner = np.full(int(labels.max()) + 1, k0, np.int64)  # k0: no built node in the region
-    np.minimum.at(owner, labels[built], point_node[built])
-    became = np.arange(k0)
-    became[point_node[built]] = owner[labels[built]]
-    node = np.where(owner[labels] < k0, owner[labels], -1)
+def fresh_regions(
+    points: np.ndarray, loose: np.ndarray, epsilon: float, metric: str, min_new: int
+) -> list[np.ndarray]:
+    """Regions (Algorithm 1's phase 2) among the points no node holds; those of at least
+    `min_new` members, as indices into `points`."""
+    if not len(loose):
+        return []
+    labels, _ = connected_regions(points[loose].astype(np.float64), epsilon, metric)
     order = np.argsort(labels, kind="stable")
-    groups = np.split(order, np.cumsum(np.bincount(labels))[:-1])
-    fresh = [g for g in groups if owner[labels[g[0]]] == k0 and len(g) >= min_new]
-    for i, ids in enumerate(fresh):
-        node[ids] = k0 + i
-    return node, became, fresh
+    groups = np.split(loose[order], np.cumsum(np.bincount(labels))[:-1])
+    return [g for g in groups if len(g) >= min_new]
 
 
 def _edges(node: np.ndarray, a: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -122,32 +111,36 @@ def components(k: int, edges: np.ndarray) -> int:
 
 
 def grow(
-    roadmap: Roadmap, members: Members, new: Members, task: Task
-) -> tuple[Roadmap, Members, dict[str, Any]]:
-    """The grown roadmap, its members (old then new) and what happened, as counts."""
+    roadmap: Roadmap, calibration: Calibration, members: Members, new: Members, task: Task
+) -> tuple[Roadmap, Calibration, Members, dict[str, Any]]:
+    """The grown roadmap, what it knows, its members (old then new) and what happened."""
     started = time.perf_counter()
-    metric, epsilon = roadmap.config.metric, roadmap.epsilon
     k0 = roadmap.num_nodes
+    new = replace(new, experience=np.ones(len(new.a), np.uint8))
     everything = members + new
     base = len(members.points)
-    point_node = np.concatenate([roadmap.point_node, np.full(len(new.points), -1, np.int64)])
+    metric = roadmap.config.metric
+    # Every image without a node (new ones, and those held or pruned before) is matched.
+    node = np.concatenate([roadmap.point_node, np.full(len(new.points), -1, np.int64)])
+    loose = np.flatnonzero(node < 0)
+    found = match(roadmap, calibration, everything.points[loose], everything.errors[loose])
+    node[loose] = [m.node if m.known else -1 for m in found]
     built_min = roadmap.config.min_samples or int(roadmap.stats.get("min_samples", 1))
-    node, became, fresh = regions(
-        everything.points, point_node, k0, epsilon, metric, max(NEW_NODE_MIN, built_min)
-    )
+    fresh = fresh_regions(
+        everything.points, np.flatnonzero(node < 0), roadmap.epsilon, metric,
+        max(NEW_NODE_MIN, built_min),
+    )  # fmt: skip
+    for i, ids in enumerate(fresh):
+        node[ids] = k0 + i
     # A new node needs an action pair linking it to the rest (the builder prunes isolated ones).
     edges, _ = _edges(node, everything.a, k0 + len(fresh))
     linked = np.zeros(k0 + len(fresh), bool)
     linked[edges.ravel()] = True
-    keep = np.zeros(k0 + len(fresh), bool)
-    keep[np.unique(became)] = True  # built nodes, less those merged into another
-    keep[k0:] = linked[k0:]
-    for ids, kept in zip(fresh, keep[k0:], strict=True):
-        if not kept:
-            node[ids] = -1
-    renumber = np.cumsum(keep) - 1
-    node = np.where(node >= 0, renumber[np.maximum(node, 0)], -1)
-    k = int(keep.sum())
+    fresh = [ids for i, ids in enumerate(fresh) if linked[k0 + i]]
+    node[node >= k0] = -1
+    for i, ids in enumerate(fresh):
+        node[ids] = k0 + i
+    k = k0 + len(fresh)
     edges, weights = _edges(node, everything.a, k)
 
     # Experience that contradicts an edge; an edge contradicted more than supported goes.
@@ -166,28 +159,17 @@ def grow(
     moved = new.a == 1
     same_node = moved & (n1[tuples_new] >= 0) & (n1[tuples_new] == n2[tuples_new])
 
-    # A merged node keeps the latent of its largest built part; a new one, the member closest
-    # to its mean (as the builder picks).
-    largest = {}
-    for old in np.argsort(-roadmap.node_sizes, kind="stable").tolist():
-        largest.setdefault(int(became[old]), old)
-    nodes = np.concatenate(
-        [roadmap.nodes[[largest[int(b)] for b in np.flatnonzero(keep[:k0])]]]
-        + [
-            everything.points[_representative(everything.points, ids, metric)][None]
-            for ids, kept in zip(fresh, keep[k0:], strict=True)
-            if kept
-        ]
-    ).astype(np.float32)
+    reps = [everything.points[_representative(everything.points, ids, metric)] for ids in fresh]
+    reps = np.reshape(reps, (-1, roadmap.nodes.shape[1]))
+    nodes = np.concatenate([roadmap.nodes, reps]).astype(np.float32)
     sizes = np.bincount(node[node >= 0], minlength=k).astype(np.int64)
-    old_ids = renumber[became]  # where each built node is now
-    old_edges = {(int(old_ids[i]), int(old_ids[j])) for i, j in roadmap.edges}
+    old_edges = {(int(i), int(j)) for i, j in roadmap.edges}
     report = {
         "tuples": len(new.a),
         "action_pairs": int(moved.sum()),
         "images_joined": int((node[base:] >= 0).sum()),
-        "merged_nodes": int(k0 - keep[:k0].sum()),
-        "new_nodes": int(keep[k0:].sum()),
+        "images_known": int(sum(m.known for m in found)),  # of those without a node
+        "new_nodes": len(fresh),
         "new_edges": len({(int(i), int(j)) for i, j in edges} - old_edges),
         "edge_weight_added": int(weights.sum() - roadmap.edge_weights.sum()),
         "no_change": int(same_node.sum()),
@@ -208,7 +190,7 @@ def grow(
     ]
     grown = Roadmap(
         config=roadmap.config,
-        epsilon=epsilon,
+        epsilon=roadmap.epsilon,
         mu0=roadmap.mu0,
         sigma0=roadmap.sigma0,
         nodes=nodes,
@@ -219,7 +201,10 @@ def grow(
         stats=stats,
     )
     report["held"] = held - base // 2  # indices into the new tuples
-    return grown, everything, report
+    # Built nodes are known as before (recalibrating on what they let in would let the bounds
+    # creep outward growth after growth); a new node by the pooled bound, as a small one.
+    thresholds = calibration.node_thresholds + (calibration.threshold,) * len(fresh)
+    return grown, replace(calibration, node_thresholds=thresholds), everything, report
 
 
 def _representative(points: np.ndarray, ids: np.ndarray, metric: str) -> int:
@@ -281,7 +266,9 @@ def _experience(
 
 
 def grow_model(
-    model_dir: Path | str, experience: list[Path | str], data_dir: Path | str | None = None
+    model_dir: Path | str,
+    experience: list[Path | str],
+    data_dir: Path | str | None = None,
 ) -> dict[str, Any]:
     """Grow the model's current roadmap by the experience folders (the tuples it has not grown
     from yet) into a new current version; the report of what happened."""
@@ -290,18 +277,17 @@ def grow_model(
     task = get_task(config["dataset"]["task"])
     source = versions.current_version(model_dir)
     roadmap = Roadmap.load(versions.roadmap_dir(model_dir))
+    calibration = load_calibration(versions.roadmap_dir(model_dir), roadmap)
     members = load_members(model_dir, vae, data_dir)
     size = config["model"]["image_size"]
     used = roadmap.stats.get("experience", {})
     new, datasets, used = _experience(vae, task, [Path(f) for f in experience], size, used)
-    grown, everything, report = grow(roadmap, members, new, task)
+    grown, calibration, everything, report = grow(roadmap, calibration, members, new, task)
     grown.stats["experience"] = used
 
     name = versions.next_version(model_dir)
     partial = versions.staging_dir(model_dir, name)
     grown.save(partial)
-    joined = grown.point_node >= 0
-    calibration = calibrate(grown, everything.points[joined], everything.errors[joined])
     save_calibration(calibration, partial)
     everything.save(partial)
     if everything.has_state.any():

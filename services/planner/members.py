@@ -47,6 +47,7 @@ class Members:
     a: np.ndarray  # (N,) uint8: 1 for an action pair
     states: np.ndarray  # (2N, *state shape): the true states where known
     has_state: np.ndarray  # (2N,) uint8: 1 where the recorder knew the state
+    experience: np.ndarray  # (N,) uint8: 1 for a tuple grown from experience, 0 for training
 
     def save(self, folder: Path) -> None:
         arrays = {f.name: np.ascontiguousarray(getattr(self, f.name)) for f in fields(self)}
@@ -94,6 +95,7 @@ class Members:
             a=np.asarray(a, np.uint8),
             states=interleave(*states) if states is not None else np.zeros((2 * n, 0), np.int8),
             has_state=np.full(2 * n, states is not None, np.uint8),
+            experience=np.zeros(n, np.uint8),
         )
 
     def __add__(self, other: Members) -> Members:
@@ -102,7 +104,7 @@ class Members:
             shape = (len(other.points), *self.states.shape[1:])
             other = Members(
                 other.points, other.errors, other.actions, other.a,
-                np.zeros(shape, self.states.dtype), other.has_state,
+                np.zeros(shape, self.states.dtype), other.has_state, other.experience,
             )  # fmt: skip
         return Members(
             *(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self))

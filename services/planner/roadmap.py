@@ -124,6 +124,27 @@ def _check_inputs(
     return z1, z2, a.astype(bool)
 
 
+def choose_epsilon(
+    points: np.ndarray, act: np.ndarray, config: RoadmapConfig
+) -> tuple[float, float, float, str, dict[str, Any]]:
+    """(epsilon, mu0, sigma0, the rule that chose it, the stable rule's scan) for latents in
+    the roadmap's point order and the action flags of their tuples."""
+    # epsilon = mu0 + w * sigma0 over the no-action pairs' distances (population std).
+    still = np.flatnonzero(~act)
+    if not len(still):
+        raise RoadmapError("epsilon needs no-action pairs (a == 0), and there are none")
+    d0 = pair_distances(points[2 * still], points[2 * still + 1], config.metric)
+    mu0 = float(d0.mean())
+    sigma0 = float(d0.std())
+    epsilon = mu0 + config.w_eps * sigma0
+    if config.eps_rule == "stable":
+        stable, scan = stable_epsilon(points, still, np.flatnonzero(act), config.metric)
+        if stable is not None:
+            return stable, mu0, sigma0, "stable", scan
+        return epsilon, mu0, sigma0, "paper", scan
+    return epsilon, mu0, sigma0, "paper", {}
+
+
 def build_roadmap(
     z1: np.ndarray, z2: np.ndarray, a: np.ndarray, config: RoadmapConfig | None = None
 ) -> Roadmap:
@@ -140,22 +161,9 @@ def build_roadmap(
     points[0::2] = z1
     points[1::2] = z2
     pair_ids = np.flatnonzero(act)
-    t_phase1 = time.perf_counter()
-
-    # epsilon = mu0 + w * sigma0 over the no-action pairs' distances (population std).
     still = np.flatnonzero(~act)
-    if not len(still):
-        raise RoadmapError("epsilon needs no-action pairs (a == 0), and there are none")
-    d0 = pair_distances(points[2 * still], points[2 * still + 1], metric)
-    mu0 = float(d0.mean())
-    sigma0 = float(d0.std())
-    epsilon = mu0 + config.w_eps * sigma0
-    eps_rule: str = "paper"
-    scan: dict[str, Any] = {}
-    if config.eps_rule == "stable":
-        stable, scan = stable_epsilon(points, still, pair_ids, metric)
-        if stable is not None:
-            epsilon, eps_rule = stable, "stable"
+    t_phase1 = time.perf_counter()
+    epsilon, mu0, sigma0, eps_rule, scan = choose_epsilon(points, act, config)
     t_eps = time.perf_counter()
 
     # Phase 2: the valid regions.

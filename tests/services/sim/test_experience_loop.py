@@ -71,9 +71,8 @@ def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
     assert report["version"] == "v2" and versions.current_version(model) == "v2"
     grown = Roadmap.load(versions.roadmap_dir(model))
     assert len(grown.point_node) == len(before.point_node) + 2 * len(data)
-    assert grown.num_nodes == before.num_nodes - report["merged_nodes"] + report["new_nodes"]
-    kept = grown.nodes[: before.num_nodes - report["merged_nodes"]]
-    assert {z.tobytes() for z in kept} <= {z.tobytes() for z in before.nodes}  # built latents
+    assert grown.num_nodes == before.num_nodes + report["new_nodes"]
+    assert np.array_equal(grown.nodes[: before.num_nodes], before.nodes)  # built nodes stay
     labels = json.loads((versions.roadmap_dir(model) / "labels.json").read_text())
     assert len(labels) == grown.num_nodes
     assert ActionPlanner.from_model_dir(model).planner.roadmap.num_nodes == grown.num_nodes
@@ -86,11 +85,11 @@ def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
 
 
 def test_exploration_spends_its_budget_in_the_simulator_and_grows_a_version(model, tmp_path):
-    cfg = ExploreConfig(actions=8, seed=1, grow_every=4, chain=2)
+    cfg = ExploreConfig(actions=30, seed=1, grow_every=10, chain=2, seen_share=0.8)
     report = explore(model, cfg, tmp_path / "exp", progress=False)
     data = load_dataset(tmp_path / "exp")
-    assert report["actions"] == 8 and len(data) == 8 == report["recorded"]
-    assert report["refused"] == int((data.a == 0).sum())
+    assert report["actions"] == 30 and len(data) == report["recorded"] > 0
+    assert report["refused"] >= int((data.a == 0).sum())  # identical looks are not recorded
     assert report["growth"]["version"] == versions.current_version(model) == "v2"
     task = ActionPlanner.from_model_dir(model).task
     for u, s1, s2, a in zip(data.u, data.state1, data.state2, data.a, strict=True):
