@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -62,15 +63,23 @@ class APNTrainConfig:
         return self.epochs * math.ceil(samples / self.batch_size)
 
 
-def action_pair_latents(vae_dir: Path | str, data_dir: Path | str):
-    """Encoder means and log-variances of the action pairs, their action arrays and the
+def action_pair_latents(vae_dir: Path | str, data_dirs: Sequence[Path | str]):
+    """Encoder means and log-variances of the action pairs of every dataset (the training
+    data, and experience folders of the same task), their action arrays and the first
     dataset's spec (which declares the action's fields and ranges)."""
     model, _ = load_vae(vae_dir)
-    data = load_dataset(data_dir)
-    act = data.a == 1
-    mu1, lv1 = encode_images(model, data.image1[act])
-    mu2, lv2 = encode_images(model, data.image2[act])
-    return data.spec, mu1, lv1, mu2, lv2, data.u[act].astype(np.int64)
+    parts = []
+    spec = None
+    for data_dir in data_dirs:
+        data = load_dataset(data_dir)
+        spec = spec or data.spec
+        if data.spec.action != spec.action:
+            raise ValueError(f"{data_dir}: its actions differ from {data_dirs[0]}'s")
+        act = data.a == 1
+        mu1, lv1 = encode_images(model, data.image1[act])
+        mu2, lv2 = encode_images(model, data.image2[act])
+        parts.append((mu1, lv1, mu2, lv2, data.u[act].astype(np.int64)))
+    return spec, *(np.concatenate(column) for column in zip(*parts, strict=True))
 
 
 def _enlarge(mu1, lv1, mu2, lv2, u, samples: int, rng: np.random.Generator):
@@ -89,14 +98,15 @@ def _enlarge(mu1, lv1, mu2, lv2, u, samples: int, rng: np.random.Generator):
 
 def train_apn(
     vae_dir: Path | str,
-    data_dir: Path | str,
+    data_dir: Path | str | Sequence[Path | str],
     out_dir: Path | str,
     cfg: APNTrainConfig,
     progress: bool = True,
 ) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    spec, mu1, lv1, mu2, lv2, u = action_pair_latents(vae_dir, data_dir)
+    data_dirs = [data_dir] if isinstance(data_dir, str | Path) else list(data_dir)
+    spec, mu1, lv1, mu2, lv2, u = action_pair_latents(vae_dir, data_dirs)
     order = rng.permutation(len(u))
     n_val = max(1, round(cfg.val_fraction * len(u)))
     val, train = order[:n_val], order[n_val:]  # split pairs first: no pair on both sides
@@ -154,7 +164,8 @@ def train_apn(
         "model": model.config.to_dict(),
         "train": asdict(cfg) | {"head": head, "total_steps": total, "ran_on": str(device)},
         "vae": str(vae_dir),
-        "dataset": str(data_dir),
+        "dataset": str(data_dirs[0]),
+        "experience": [str(d) for d in data_dirs[1:]],
         "task": spec.task,
         "pairs": {"train": len(train), "val": len(val), "train_samples": len(tr[2])},
         # The training split's action statistics after scaling to [0, 1]: Table II standardises
@@ -196,7 +207,7 @@ def evaluate_apn(apn_dir: Path | str, vae_dir: Path | str, test_dir: Path | str)
     standardised), how many pixels the clicks land off, and how often the task's rules see the
     same move as the demonstrator's."""
     model, meta = load_apn(apn_dir)
-    spec, mu1, _, mu2, _, u = action_pair_latents(vae_dir, test_dir)
+    spec, mu1, _, mu2, _, u = action_pair_latents(vae_dir, [test_dir])
     predicted, _ = propose(model, mu1, mu2)
     names = spec.action.names
     pick = np.array([n.startswith("pick.") for n in names])

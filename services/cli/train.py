@@ -138,7 +138,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     apn = train.add_parser("apn", help="train the Action Proposal Network on a VAE's latents")
     apn.add_argument("--vae", required=True, type=Path)
-    apn.add_argument("--data", required=True, type=Path)
+    apn.add_argument(
+        "--data",
+        required=True,
+        type=Path,
+        nargs="+",
+        help="training dataset, then any experience folders whose action pairs it learns too",
+    )
     apn.add_argument("--out", required=True, type=Path)
     apn.add_argument(
         "--head",

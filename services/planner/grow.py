@@ -143,9 +143,10 @@ def grow(
     k = k0 + len(fresh)
     edges, weights = _edges(node, everything.a, k)
 
-    # Experience that contradicts an edge; an edge contradicted more than supported goes.
+    # Experience that contradicts an edge; an edge contradicted more than supported goes (all
+    # experience counts, so that an edge once dropped stays dropped while that holds).
     tuples_new = np.arange(base // 2, len(everything.a))
-    against = contradictions(task, node, everything, tuples_new)
+    against = contradictions(task, node, everything, np.flatnonzero(everything.experience))
     weight_of = {(int(i), int(j)): int(w) for (i, j), w in zip(edges, weights, strict=True)}
     dropped = sorted(e for e, c in against.items() if e in weight_of and c > weight_of[e])
     if dropped:

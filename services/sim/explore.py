@@ -44,8 +44,8 @@ class ExploreConfig:
     grow_every: int = 100  # actions between in-memory growths
     # Where actions come from: the APN towards a nearby node it has no edge to, an action
     # the roadmap's pairs show (from somewhere else), or a draw from the spec; the rest APN.
-    seen_share: float = 0.4
-    spec_share: float = 0.1
+    seen_share: float = 0.1
+    spec_share: float = 0.05
     chain: int = 3  # actions in a row from one start before choosing another
 
     def __post_init__(self) -> None:
