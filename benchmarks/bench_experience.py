@@ -2,16 +2,18 @@
 
   explore  A copy of the model; Table I on unseen test pairs; then `lsr explore` in steps of
            --step actions up to --budget, Table I and the roadmap's components after each;
-           the closed loop in simulation at the end.
-  loop     A copy of the model; --pairs ordinary closed-loop tasks in simulation recording
-           what they did; the roadmap grown from it; Table I (detour ratio) before and after.
+           with --closed-loop N, N closed-loop tasks in simulation at the end.
+  loop     A copy of the model; --loop-pairs ordinary closed-loop tasks in simulation
+           recording what they did; the roadmap grown from it; Table I (detour ratio) before
+           and after.
   timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
 
 Each mode prints one JSON line and writes OUT/results.json; explore plots All and the
 component count against the actions spent (--figure). The source model is never changed.
 
   python benchmarks/bench_experience.py explore --model runs/box500 \
-      --test data/box_stacking/test --budget 2000 --step 250 --out runs/experience/box500
+      --test data/box_stacking/test --budget 2000 --step 250 --out runs/experience/box500b \
+      --figure docs/images/experience_box_stacking.png --label "box stacking, 500 tuples"
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from services.cli.common import single_thread_torch
+from services.data.experience import has_experience
 from services.planner.eval_vfm import run_vfm_eval
 from services.planner.grow import grow_model
 from services.planner.roadmap import Roadmap
@@ -109,6 +112,8 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
     before = table1(model, args.test, args.pairs)
     print(json.dumps({"before": before}), flush=True)
     loop = closed_loop(model, args.loop_pairs, experience)
+    if not has_experience(experience):  # no task got as far as one action
+        return {"before": before, "closed_loop": loop, "growth": None}
     growth = grow_model(model, [experience], args.data)
     after = table1(model, args.test, args.pairs)
     return {"before": before, "closed_loop": loop, "growth": growth, "after": after}

@@ -40,10 +40,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_grow(args: argparse.Namespace) -> int:
-    from services.cli.common import single_thread_torch
     from services.planner.grow import grow_model
 
-    single_thread_torch()
     print(json.dumps(grow_model(args.model, args.experience, args.data)))
     return 0
 
