@@ -122,6 +122,14 @@ def test_gateway_serves_every_task_that_has_services() -> None:
     assert sorted(served) == sorted({task for _, task in TASK_SERVICES.values()})
 
 
+def test_gateway_records_experience_on_a_volume_of_its_own() -> None:
+    gateway = compose_services()["gateway"]
+    folder = gateway["environment"]["LSR_EXPERIENCE_DIR"]
+    assert f"experience:{folder}" in gateway["volumes"]
+    compose = YAML(typ="safe").load((ROOT / "docker-compose.yml").read_text())
+    assert "experience" in compose["volumes"]
+
+
 def test_gateway_publishes_port_8000() -> None:
     gateway = compose_services()["gateway"]
     assert setting(gateway, "--host", "LSR_HOST") == "0.0.0.0"  # not the default, loopback
