@@ -75,10 +75,18 @@ def action_pair_latents(vae_dir: Path | str, data_dirs: Sequence[Path | str]):
         spec = spec or data.spec
         if data.spec.action != spec.action:
             raise ValueError(f"{data_dir}: its actions differ from {data_dirs[0]}'s")
+        if data.image_size != model.config.image_size:
+            raise ValueError(
+                f"{data_dir}: {data.image_size} px images, the VAE takes {model.config.image_size}"
+            )
         act = data.a == 1
+        if not act.any():  # experience where every action was refused
+            continue
         mu1, lv1 = encode_images(model, data.image1[act])
         mu2, lv2 = encode_images(model, data.image2[act])
         parts.append((mu1, lv1, mu2, lv2, data.u[act].astype(np.int64)))
+    if not parts:
+        raise ValueError(f"no action pairs in {[str(d) for d in data_dirs]}")
     return spec, *(np.concatenate(column) for column in zip(*parts, strict=True))
 
 

@@ -46,12 +46,19 @@ class ExperienceLog:
                 self._check(ds.read_manifest(self.directory))
 
     def _check(self, manifest: dict[str, Any]) -> None:
-        """An existing folder must hold this task's tuples of this spec and size."""
+        """An existing folder must be an experience folder (never a training set) of this
+        task's tuples of this spec and size."""
+        if "experience" not in manifest:
+            raise ExperienceError(
+                f"{self.directory}: a dataset, not an experience folder; experience is never "
+                "appended to one"
+            )
         if ds.manifest_spec(manifest) != self.spec or manifest["image_size"] != self.image_size:
             raise ExperienceError(
                 f"{self.directory}: holds {manifest['task']!r} experience at "
                 f"{manifest['image_size']} px with another spec; this log records "
-                f"{self.spec.task!r} at {self.image_size} px; use another folder"
+                f"{self.spec.task!r} at {self.image_size} px (another model's?); record into "
+                "another folder"
             )
 
     @contextmanager

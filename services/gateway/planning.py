@@ -39,6 +39,7 @@ from shared.bus import (
     robot_plan_key,
 )
 from shared.client import PlanningClient
+from shared.dataset import DatasetError
 from shared.images import ImageError, PngCache, decode_image, png_b64
 from shared.messages import RunRequest, WireArray
 from shared.settings import Settings
@@ -256,8 +257,12 @@ class Gateway:
                 raise FieldError(f"tuples.{i}.action", str(exc)) from None
             actions.append(logic.action_to_array(action))
         spec = TaskSpec(logic.spec.task, logic.spec.action, None)
-        log = ExperienceLog(self.settings.experience_dir / task, spec, size, source="robots")
-        total = log.append(np.stack(before), np.stack(after), np.stack(actions))
+        folder = self.settings.experience_dir / task
+        try:
+            log = ExperienceLog(folder, spec, size, source="robots")
+            total = log.append(np.stack(before), np.stack(after), np.stack(actions))
+        except (OSError, DatasetError) as exc:  # unwritable, full, or a damaged manifest
+            raise ServiceUnavailable("experience", f"not recordable in {folder}: {exc}") from exc
         return ExperienceResponse(recorded=len(actions), total=total)
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:

@@ -13,7 +13,7 @@ from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, calibrate, save_calibration
 from services.planner.members import MEMBERS, Members, interleave
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapConfig, build_roadmap
-from services.planner.versions import FIRST, current_version, roadmap_dir
+from services.planner.versions import CURRENT, FIRST, current_version, roadmap_dir
 from shared.checkpoint import seal
 from shared.dataset import load_dataset
 from shared.tasks import get_task
@@ -41,6 +41,11 @@ def build_from_dataset(
     vae_dir: Path | str, data_dir: Path | str, config: RoadmapConfig, out_dir: Path | str
 ) -> dict[str, Any]:
     started = time.perf_counter()
+    if (Path(out_dir) / CURRENT).exists():  # a grown model would go on planning with a version
+        raise ValueError(
+            f"{out_dir}: holds grown roadmap versions ({CURRENT}, versions/); build into an "
+            "empty folder, or move that one aside first"
+        )
     data = load_dataset(data_dir)
     model, _ = load_vae(vae_dir)
     members = Members.encode(model, data)

@@ -38,7 +38,7 @@ def _distance(a: np.ndarray, b: np.ndarray, metric: str) -> np.ndarray:
 def held(
     roadmap: Roadmap, z: np.ndarray, nodes: np.ndarray, members: np.ndarray, point_node: np.ndarray
 ) -> np.ndarray:
-    """Whether each latent of `z` lies within epsilon of a training member of `nodes[i]`."""
+    """Whether each latent of `z` lies within epsilon of a member of `nodes[i]`."""
     out = np.zeros(len(z), dtype=bool)
     for node in np.unique(nodes):
         rows = np.flatnonzero(nodes == node)
@@ -67,13 +67,15 @@ def run_data_eval(
     size = config["model"]["image_size"]
     if test.image_size != size:
         raise ValueError(f"test images are {test.image_size} px, the VAE takes {size} px")
-    if (folder / MEMBERS).is_file():  # kept since roadmaps grow: training data, experience
-        members = Members.load(folder).points
-    elif len(train) * 2 != len(roadmap.point_node):
+    kept = Members.load(folder) if (folder / MEMBERS).is_file() else None  # grown: + experience
+    built_on = len(roadmap.point_node) if kept is None else 2 * int((kept.experience == 0).sum())
+    if len(train) * 2 != built_on:
         raise ValueError(
             f"{train_dir or config['dataset']['path']}: {2 * len(train)} images, the roadmap "
-            f"was built on {len(roadmap.point_node)}; give the training set with --train"
+            f"was built on {built_on}; give the training set with --train"
         )
+    if kept is not None:
+        members = kept.points
     else:
         members = interleave(*(encode_images(vae, x)[0] for x in (train.image1, train.image2)))
     z1, z2 = encode_images(vae, test.image1)[0], encode_images(vae, test.image2)[0]

@@ -5,7 +5,7 @@ fixed. A new image joins the node the planner would match it to, where it is kno
 calibrated knowing test of `services.planner.knowing`): growth and planning place an image
 alike. Images no node knows form regions among themselves by the roadmap's epsilon, and a
 region as large as the pruning threshold (at least NEW_NODE_MIN images) that an action pair
-links to the rest becomes a new node. Then every action pair's nodes give the edges, as
+links to another node becomes a new node. Then every action pair's nodes give the edges, as
 Algorithm 1's phase 3. Guards against bad experience:
 - a tuple with an image in no node is kept for review (`review/`), not added blindly; each
   growth tries it again, since more experience may place it;
@@ -29,7 +29,6 @@ from typing import Any
 import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial.distance import cdist
 
 from services.data.experience import ExperienceLog
 from services.encoder.checkpoint import load_vae, read_vae_config
@@ -41,7 +40,7 @@ from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, load_calibration, match, save_calibration
 from services.planner.members import MEMBERS, Members
 from services.planner.regions import connected_regions
-from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap
+from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, pair_distances
 from shared.checkpoint import seal
 from shared.dataset import FIELDS, Dataset, load_dataset
 from shared.tasks import get_task
@@ -53,8 +52,6 @@ REVIEW = "review"
 # A new node needs at least this many images (or the roadmap's pruning threshold, if larger):
 # one image outside every region is an outlier to review, not yet a state.
 NEW_NODE_MIN = 3
-_CDIST = {"l1": "cityblock", "l2": "euclidean", "inf": "chebyshev"}
-_BLOCK = 1 << 22  # distances per block
 
 
 def fresh_regions(
@@ -94,14 +91,15 @@ def contradictions(
         start, end = int(n1[t]), int(n2[t])
         if members.a[t] != 1 or start < 0 or end < 0:
             continue
-        for other in leaving.get(start, ()):
-            target = int(n2[other])
-            if (
-                other != t
-                and target != end
-                and task.same_action(members.actions[t], members.actions[other])
-            ):
-                found[(min(start, target), max(start, target))] += 1
+        targets = {  # each tuple counts once against each edge it contradicts
+            int(n2[other])
+            for other in leaving.get(start, ())
+            if other != t
+            and int(n2[other]) != end
+            and task.same_action(members.actions[t], members.actions[other])
+        }
+        for target in targets:
+            found[(min(start, target), max(start, target))] += 1
     return found
 
 
@@ -132,7 +130,7 @@ def grow(
     )  # fmt: skip
     for i, ids in enumerate(fresh):
         node[ids] = k0 + i
-    # A new node needs an action pair linking it to the rest (the builder prunes isolated ones).
+    # A new node needs an action pair linking it to another (the builder prunes isolated ones).
     edges, _ = _edges(node, everything.a, k0 + len(fresh))
     linked = np.zeros(k0 + len(fresh), bool)
     linked[edges.ravel()] = True
@@ -211,23 +209,30 @@ def grow(
 def _representative(points: np.ndarray, ids: np.ndarray, metric: str) -> int:
     """The member closest to the region mean, as the builder picks a node's latent."""
     mean = points[ids].mean(axis=0, keepdims=True)
-    return int(ids[np.argmin(cdist(points[ids], mean, _CDIST[metric])[:, 0])])
+    return int(ids[np.argmin(pair_distances(points[ids], mean, metric))])
 
 
-def load_members(model_dir: Path, vae: VAE, data_dir: Path | str | None = None) -> Members:
-    """The current version's members; a roadmap built before they were kept encodes its
-    training data (`data_dir`, else the path the VAE recorded) once."""
-    folder = versions.roadmap_dir(model_dir)
+def load_members(
+    model_dir: Path, vae: VAE, data_dir: Path | str | None = None, folder: Path | None = None
+) -> Members:
+    """The members of a roadmap version (default: the current one); a roadmap built before
+    they were kept encodes its training data (`data_dir`, else the VAE's recorded path) once."""
+    folder = folder or versions.roadmap_dir(model_dir)
+    points = len(Roadmap.load(folder).point_node)
     if (folder / MEMBERS).is_file():
         members = Members.load(folder)
-    else:
-        path = data_dir or read_vae_config(model_dir / "vae")["dataset"]["path"]
-        members = Members.encode(vae, load_dataset(path))
-    points = len(Roadmap.load(folder).point_node)
+        if len(members.points) != points:
+            raise ValueError(
+                f"{folder / MEMBERS}: {len(members.points)} points, its roadmap {points}: the "
+                "file does not belong to this roadmap; rebuild it with lsr build-roadmap"
+            )
+        return members
+    path = data_dir or read_vae_config(model_dir / "vae")["dataset"]["path"]
+    members = Members.encode(vae, load_dataset(path))
     if len(members.points) != points:
         raise ValueError(
-            f"{folder}: the roadmap has {points} points, its members {len(members.points)}; "
-            "give the model's training data with --data"
+            f"{path}: {len(members.points)} images, the roadmap in {folder} was built on "
+            f"{points}; give the model's training data with --data"
         )
     return members
 
@@ -272,14 +277,23 @@ def grow_model(
     data_dir: Path | str | None = None,
 ) -> dict[str, Any]:
     """Grow the model's current roadmap by the experience folders (the tuples it has not grown
-    from yet) into a new current version; the report of what happened."""
+    from yet) into a new current version; the report of what happened. One growth at a time
+    per model (a lock), from one version read once."""
     model_dir = Path(model_dir)
+    with versions.growing(model_dir):
+        return _grow_model(model_dir, experience, data_dir)
+
+
+def _grow_model(
+    model_dir: Path, experience: list[Path | str], data_dir: Path | str | None
+) -> dict[str, Any]:
     vae, config = load_vae(model_dir / "vae")
     task = get_task(config["dataset"]["task"])
     source = versions.current_version(model_dir)
-    roadmap = Roadmap.load(versions.roadmap_dir(model_dir))
-    calibration = load_calibration(versions.roadmap_dir(model_dir), roadmap)
-    members = load_members(model_dir, vae, data_dir)
+    folder = versions.version_dir(model_dir, source)
+    roadmap = Roadmap.load(folder)
+    calibration = load_calibration(folder, roadmap)
+    members = load_members(model_dir, vae, data_dir, folder)
     size = config["model"]["image_size"]
     used = roadmap.stats.get("experience", {})
     new, datasets, used = _experience(vae, task, [Path(f) for f in experience], size, used)
@@ -291,10 +305,14 @@ def grow_model(
     grown.save(partial)
     save_calibration(calibration, partial)
     everything.save(partial)
-    if everything.has_state.any():
-        with_state = np.where(everything.has_state.astype(bool), grown.point_node, -1)
-        labels = label_nodes(with_state, everything.states, grown.num_nodes)
+    with_state = np.where(everything.has_state.astype(bool), grown.point_node, -1)
+    labels = label_nodes(with_state, everything.states, grown.num_nodes)
+    if everything.has_state.any() and labels.members.all():
         (partial / LABELS).write_text(json.dumps(labels.to_json(task)) + "\n")
+    elif everything.has_state.any():  # a new node of a robot's images only: no state to name
+        report["labels"] = (
+            f"none: nodes {np.flatnonzero(labels.members == 0).tolist()} have no state"
+        )
     held = report.pop("held")
     if len(held):
         _write_review(partial / REVIEW, datasets, held, size)

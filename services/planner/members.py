@@ -6,7 +6,7 @@ and the true states where known, in the roadmap's point order (z1[0], z2[0], z1[
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -99,13 +99,25 @@ class Members:
         )
 
     def __add__(self, other: Members) -> Members:
-        """Both, this one's points first; rows without states take this one's state shape."""
-        if other.states.shape[1:] != self.states.shape[1:] and not other.has_state.any():
-            shape = (len(other.points), *self.states.shape[1:])
-            other = Members(
-                other.points, other.errors, other.actions, other.a,
-                np.zeros(shape, self.states.dtype), other.has_state, other.experience,
-            )  # fmt: skip
+        """Both, this one's points first; the side without states takes the other's shape."""
+        first, second = self, other
+        if first.states.shape[1:] != second.states.shape[1:]:
+            if not second.has_state.any():
+                second = second._stateless_like(first)
+            elif not first.has_state.any():
+                first = first._stateless_like(second)
+            else:
+                raise ValueError(
+                    f"states of shape {first.states.shape[1:]} and {second.states.shape[1:]}"
+                )
         return Members(
-            *(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self))
+            *(
+                np.concatenate([getattr(first, f.name), getattr(second, f.name)])
+                for f in fields(self)
+            )
         )
+
+    def _stateless_like(self, other: Members) -> Members:
+        """These members (none with a state) with `other`'s state shape, zero-filled."""
+        shape = (len(self.points), *other.states.shape[1:])
+        return replace(self, states=np.zeros(shape, other.states.dtype))

@@ -16,7 +16,7 @@ from services.planner.roadmap import Roadmap
 from services.planner.versions import current_version, version_dir
 from services.runtime import ServiceContext
 from shared.bus import Handler
-from shared.checkpoint import verify
+from shared.checkpoint import MANIFEST, CheckpointError, verify
 from shared.messages import GraphReply, GraphRequest, PathsReply, PathsRequest, WireArray, unpack
 from shared.plans import UnknownImageError
 from shared.validation import FieldError, check_latents, check_task
@@ -54,10 +54,13 @@ class Served:
     labels: tuple[list[Any], list[float]] | None
 
     @classmethod
-    def load(cls, model_dir: Path) -> Served:
+    def load(cls, model_dir: Path, require_sealed: bool = False, check: bool = True) -> Served:
+        """The current version; `check` its seal (the service start checked the first)."""
         version = current_version(model_dir)
         folder = version_dir(model_dir, version)
-        if not verify(folder):
+        if check and not verify(folder):
+            if require_sealed:
+                raise CheckpointError(f"{folder}: not sealed (no {MANIFEST}); not taken")
             log.warning("%s: not sealed: served unverified", folder)
         roadmap = Roadmap.load(folder)
         labels = node_labels(folder, roadmap.num_nodes)
@@ -72,13 +75,17 @@ def watch_versions(
     that does not load is logged and the old one kept."""
 
     def run() -> None:
+        failed = None  # the version that would not load, said once
         while not context.stopping.wait(every_s):
+            version = None
             try:
-                if current_version(model_dir) == served[0].version:
+                version = current_version(model_dir)
+                if version in (served[0].version, failed):
                     continue
-                fresh = Served.load(model_dir)
+                fresh = Served.load(model_dir, context.settings.require_sealed_model)
             except (OSError, ValueError) as exc:
-                log.warning("roadmap version not taken: %s", exc)
+                failed = version
+                log.warning("roadmap version %s not taken: %s", version, exc)
                 continue
             served[0] = fresh
             context.status["roadmap_version"] = fresh.version
@@ -90,7 +97,7 @@ def watch_versions(
 
 
 def setup(context: ServiceContext) -> dict[str, Handler]:
-    served = [Served.load(context.model.directory)]
+    served = [Served.load(context.model.directory, check=False)]  # ModelInfo.read checked it
     context.status["roadmap_version"] = served[0].version
     watch_versions(context.model.directory, served, context, every_s=RELOAD_S)
     dim, task = context.model.latent_dim, context.model.task

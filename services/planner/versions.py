@@ -9,8 +9,11 @@ folder it should read.
 
 from __future__ import annotations
 
+import fcntl
 import re
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from shared.checkpoint import replace_atomically
@@ -19,6 +22,7 @@ BASE = "roadmap"
 VERSIONS = "versions"
 CURRENT = "CURRENT"
 FIRST = "v1"
+LOCK = ".grow.lock"
 _NAME = re.compile(r"v([1-9][0-9]*)")
 
 
@@ -82,6 +86,20 @@ def publish(model_dir: Path | str, name: str, partial: Path) -> Path:
     partial.rename(folder)
     make_current(model_dir, name)
     return folder
+
+
+@contextmanager
+def growing(model_dir: Path | str) -> Iterator[None]:
+    """Hold the model's growth lock: a second growth waits until the first has published."""
+    base = Path(model_dir) / BASE
+    if not base.is_dir():
+        raise VersionError(f"{base}: no roadmap folder")
+    with open(base / LOCK, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def make_current(model_dir: Path | str, name: str) -> None:

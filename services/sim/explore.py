@@ -84,15 +84,19 @@ def spec_action(spec: ArraySpec, rng: np.random.Generator) -> np.ndarray:
 
 
 def _target(
-    roadmap: Roadmap, z: np.ndarray, node: int, step: float, rng: np.random.Generator
+    roadmap: Roadmap,
+    component: np.ndarray,
+    z: np.ndarray,
+    node: int,
+    step: float,
+    rng: np.random.Generator,
 ) -> int:
     """A node to head for: one of the NEAR nodes whose latent distance from `z` is closest to
     one action's (`step`), among those in other components where there are any, else among
     those without an edge from here. An action-shaped latent space puts the states one action
     apart about that far apart, so the APN's action towards such a node is often one that
     can be done (box stacking at 500 tuples: 39% of proposals legal, against 7% towards the
-    nearest nodes)."""
-    component, _ = shape_of(roadmap)
+    nearest nodes). `component`: each node's, as shape_of gives it."""
     others = np.flatnonzero(component != component[node])
     if not len(others):
         others = np.setdiff1d(np.arange(roadmap.num_nodes), [node, *roadmap.neighbours(node)])
@@ -138,7 +142,8 @@ def explore(
     rng = np.random.default_rng(cfg.seed)
     new: Members | None = None  # what was seen, encoded at the last growth
     rows: list[tuple] = []  # what was seen since
-    tried = refused = 0
+    tried = refused = grown_at = 0
+    component = shape_of(roadmap)[0]
     sources = {"apn": 0, "seen": 0, "spec": 0}
     seen = members.actions[members.a == 1]
     step = action_step(members, roadmap.config.metric)
@@ -161,12 +166,17 @@ def explore(
                 z = planner.encode(image)
                 here = int(roadmap.nearest_node(z))
                 draw = rng.random()
-                if draw < cfg.spec_share or not len(seen):
+                if draw < cfg.spec_share:
                     source, array = "spec", spec_action(task.spec.action, rng)
                 elif draw < cfg.spec_share + cfg.seen_share:
-                    source, array = "seen", seen[rng.integers(len(seen))]
+                    source = "seen" if len(seen) else "spec"
+                    array = (
+                        seen[rng.integers(len(seen))]
+                        if len(seen)
+                        else spec_action(task.spec.action, rng)
+                    )
                 else:
-                    there = _target(roadmap, z, here, step, rng)
+                    there = _target(roadmap, component, z, here, step, rng)
                     arrays, _ = propose(planner.apn, z[None], roadmap.nodes[there][None])
                     source, array = "apn", arrays[0]
                 sources[source] += 1
@@ -183,18 +193,20 @@ def explore(
                 except WorldError:  # a wrecked scene: start elsewhere
                     break
                 after = world.render()
-                if action is None and np.array_equal(after, image):
-                    continue  # nothing changed, and a world that draws alike shows nothing new
-                rows.append((image, action, after, state, after_state))
-                record(*rows[-1])
+                if action is not None or not np.array_equal(after, image):
+                    # (an identical look after a refusal shows nothing new: not recorded)
+                    rows.append((image, action, after, state, after_state))
+                    record(*rows[-1])
                 state = after_state
-                if tried % cfg.grow_every == 0 and rows:
+                if tried >= grown_at + cfg.grow_every and rows:
+                    grown_at = tried
                     fresh = _encode(vae, task, rows)
                     new, rows = fresh if new is None else new + fresh, []
                     roadmap, _, everything, _ = grow(base, calibration, members, new, task)
                     node_states = _node_states(task, roadmap, everything)
+                    component = shape_of(roadmap)[0]
                     shape = {"nodes": roadmap.num_nodes, "edges": len(roadmap.edges)}
-                    shape["components"] = int(shape_of(roadmap)[0].max() + 1)
+                    shape["components"] = int(component.max() + 1)
                     bar.set_postfix(shape)
     bar.close()
     record.flush()

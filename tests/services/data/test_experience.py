@@ -41,6 +41,16 @@ def test_a_folder_of_another_spec_or_size_is_refused(tmp_path):
         )
 
 
+def test_a_training_set_is_never_appended_to(tmp_path):
+    log = ExperienceLog(tmp_path / "exp", TASK.spec, 16)
+    log.append(*tuples(1))
+    manifest = (tmp_path / "exp" / "manifest.json").read_text()
+    training = manifest.replace('"experience"', '"not_experience"')
+    (tmp_path / "exp" / "manifest.json").write_text(training)
+    with pytest.raises(ExperienceError, match="not an experience folder"):
+        ExperienceLog(tmp_path / "exp", TASK.spec, 16)
+
+
 def test_an_append_killed_mid_write_leaves_what_was_recorded(tmp_path, monkeypatch):
     log = ExperienceLog(tmp_path / "exp", TASK.spec, 16)
     log.append(*tuples(2))

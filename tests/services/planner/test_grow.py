@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -100,3 +102,21 @@ def test_members_add_keeps_order(rows):
     first, second = members(rows, 0), members(rows, 1)
     both = first + second
     assert np.array_equal(both.points[2:], second.points) and len(both.a) == 2
+
+
+def test_each_contradicting_tuple_counts_once_however_many_pairs_support_the_edge():
+    roadmap, known, m = base(BASE + [("A", "B", 1)] * 4)  # A-B by action 1, five times
+    grown, _, _, report = grow(roadmap, known, m, members([("A", "C", 1)] * 2, seed=5), TASK)
+    assert report["contradictions"] == 2 and not report["dropped_edges"]
+    assert len(grown.edges) == 3  # A-B stays, A-C joins
+
+
+def test_members_without_states_join_members_with_them_either_way_round():
+    stateless = members([("A", "B", 1)], seed=0)
+    stated = replace(
+        stateless,
+        states=np.ones((2, 5), np.int8),
+        has_state=np.ones(2, np.uint8),
+    )
+    for both in (stateless + stated, stated + stateless):
+        assert both.states.shape == (4, 5) and both.has_state.sum() == 2

@@ -10,8 +10,9 @@ import pytest
 from services.data.experience import ExperienceLog, Recorder
 from services.planner import versions
 from services.planner.action_plans import ActionPlanner
+from services.planner.build import build_from_dataset
 from services.planner.grow import grow_model
-from services.planner.roadmap import Roadmap
+from services.planner.roadmap import Roadmap, RoadmapConfig
 from services.sim.box_stacking.world import BoxStackingWorld
 from services.sim.closed_loop import optimal_moves, run_episode
 from services.sim.explore import ExploreConfig, explore
@@ -46,7 +47,7 @@ class Oracle:
 
 
 def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
-    model, small_world, tmp_path
+    model, small_world, tmp_path, tiny_model
 ):
     task = small_world.task
     oracle = Oracle(small_world)
@@ -79,6 +80,10 @@ def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
 
     with pytest.raises(ValueError, match="nothing new"):
         grow_model(model, [experience])  # the same tuples never count twice
+    with pytest.raises(ValueError, match="grown roadmap versions"):
+        build_from_dataset(
+            model / "vae", tiny_model[1], RoadmapConfig(min_samples=1), model / "roadmap"
+        )  # a rebuild would go on planning with v2
     versions.make_current(model, "v1")  # a roll-back
     assert ActionPlanner.from_model_dir(model).planner.roadmap.num_nodes == before.num_nodes
     assert versions.versions(model) == ["v1", "v2"]
