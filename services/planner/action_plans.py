@@ -50,13 +50,15 @@ class ActionPlanner:
     def encode(self, image: np.ndarray) -> np.ndarray:
         return self.planner.encode(image[None])[0]
 
+    follows = True  # takes the closed loop's `expect` (VisualPlanner.plan_latent)
+
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
         """Plans from a start image to a goal image, in the roadmap's deterministic order;
         UnknownImageError when an end is unlike anything the model knows."""
         z, errors = self.planner.look(np.stack([start, goal]))
-        return self.plan_latent(z[0], z[1], max_plans, errors)
+        return self.plan_latent(z[0], z[1], max_plans, errors, expect)
 
     def plan_latent(
         self,
@@ -64,9 +66,10 @@ class ActionPlanner:
         z_goal: np.ndarray,
         max_plans: int = 8,
         errors: np.ndarray | None = None,
+        expect: int | None = None,
     ) -> list[VisualActionPlan]:
         plans = []
-        for latent_plan in self.planner.plan_latent(z_start, z_goal, max_plans, errors):
+        for latent_plan in self.planner.plan_latent(z_start, z_goal, max_plans, errors, expect):
             z = latent_plan.latents
             arrays, confidences = propose(self.apn, z[:-1], z[1:]) if len(z) > 1 else ([], [])
             plans.append(

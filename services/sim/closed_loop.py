@@ -71,6 +71,8 @@ def run_episode(
     state = world.reset(start, rng)
     episode = Episode(success=False, reason="max_steps", final_state=state, states=[state])
     last: np.ndarray | None = None  # the image seen after the last action
+    expect: dict[str, int] = {}  # the node the last step was meant to reach, for planners
+    follows = getattr(planner, "follows", False)  # that can keep the loop's place
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
@@ -78,7 +80,7 @@ def run_episode(
         if record is not None and last is not None and not np.array_equal(last, seen):
             record(last, None, seen, state, state)
         try:
-            plans = planner.plan(seen, goal_image, max_plans)
+            plans = planner.plan(seen, goal_image, max_plans, **(expect if follows else {}))
         except UnknownImageError as refused:  # never act on a scene the model does not know
             episode.reason = f"unknown_{refused.end}"
             episode.detail = refused.reason
@@ -107,6 +109,7 @@ def run_episode(
         except WorldError as exc:
             episode.reason = f"physics: {exc}"
             break
+        expect = {"expect": plan.nodes[1]}
         episode.actions.append(plan.actions[0])
         episode.states.append(state)
         episode.images.append(last := world.render())

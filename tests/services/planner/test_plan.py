@@ -63,3 +63,23 @@ def test_wrong_images_are_refused(planner, images):
     vp, _ = planner
     with pytest.raises(ValueError, match=r"uint8 of shape \(N, 32, 32, 3\)"):
         vp.encode(images)
+
+
+def test_a_closed_loop_keeps_its_place_where_the_image_is_known_there(planner):
+    """With `expect`, the plan starts at the node the last step was meant to reach, if the
+    image is known there too; otherwise at the nearest node."""
+    from dataclasses import replace
+
+    from services.planner.knowing import calibrate
+
+    vp, centres = planner
+    roadmap = vp.roadmap
+    errors = np.full((2, 2), 1e-3)
+    latents = np.concatenate([roadmap.nodes] * 2).astype(np.float64)
+    known = calibrate(roadmap, latents + 0.01, np.full((len(latents), 2), 1e-3))
+    wide = replace(known, node_thresholds=(1.0, 100.0, 1.0, 1.0))  # node 1 knows far around
+    calibrated = VisualPlanner(vp.vae, roadmap, wide)
+    start, goal = centres[0] + 0.05, centres[3]  # nearest node 0, within node 1's bound too
+    assert calibrated.plan_latent(start, goal, 4, errors)[0].nodes[0] == 0
+    assert calibrated.plan_latent(start, goal, 4, errors, expect=1)[0].nodes == [1, 2, 3]
+    assert calibrated.plan_latent(start, goal, 4, errors, expect=2)[0].nodes[0] == 0  # not there
