@@ -165,17 +165,25 @@ class Recorder:
     def __call__(
         self, before: np.ndarray, action: Any, after: np.ndarray, state: Any, state_after: Any
     ) -> None:
-        self.rows.append((before, self.task.action_to_array(action), after, state, state_after))
+        self.rows.append((before, action, after, state, state_after))
         if len(self.rows) >= self.batch:
             self.flush()
 
     def flush(self) -> None:
         if not self.rows:
             return
-        image1, u, image2, s1, s2 = zip(*self.rows, strict=True)
-        states = ()
-        if self.log.spec.state is not None:
-            states = tuple(np.stack([self.task.state_to_array(s) for s in x]) for x in (s1, s2))
-        self.log.append(np.stack(image1), np.stack(image2), np.stack(u), *states)
+        image1, image2, u, *states = tuple_arrays(self.task, self.rows)
+        self.log.append(image1, image2, u, *(states if self.log.spec.state is not None else ()))
         self.recorded += len(self.rows)
         self.rows = []
+
+
+def tuple_arrays(task: Task, rows: list[tuple]) -> tuple[np.ndarray, ...]:
+    """Rows as a Record gets them -> (image1, image2, u, state1, state2); the states as
+    arrays where every row has them, else none."""
+    image1, actions, image2, s1, s2 = zip(*rows, strict=True)
+    u = np.stack([task.action_to_array(a) for a in actions])
+    out = (np.stack(image1), np.stack(image2), u)
+    if any(s is None for s in (*s1, *s2)):
+        return out
+    return (*out, *(np.stack([task.state_to_array(s) for s in x]) for x in (s1, s2)))

@@ -78,6 +78,7 @@ class Gateway:
         self._clients: dict[str, PlanningClient] = {}
         self._sizes: dict[str, tuple[float, int]] = {}  # task -> (when asked, image size)
         self.pngs = PngCache()
+        self._logs: dict[str, ExperienceLog] = {}  # task -> where its robots' reports go
         for spec in settings.task_specs.values():  # tasks defined by their data
             declare_task(TaskSpec.from_json(spec))
 
@@ -256,10 +257,12 @@ class Gateway:
             except TaskError as exc:
                 raise FieldError(f"tuples.{i}.action", str(exc)) from None
             actions.append(logic.action_to_array(action))
-        spec = TaskSpec(logic.spec.task, logic.spec.action, None)
         folder = self.settings.experience_dir / task
         try:
-            log = ExperienceLog(folder, spec, size, source="robots")
+            log = self._logs.get(task)
+            if log is None or log.image_size != size:  # opened (and checked) once per model
+                spec = TaskSpec(logic.spec.task, logic.spec.action, None)
+                log = self._logs[task] = ExperienceLog(folder, spec, size, source="robots")
             total = log.append(np.stack(before), np.stack(after), np.stack(actions))
         except (OSError, DatasetError) as exc:  # unwritable, full, or a damaged manifest
             raise ServiceUnavailable("experience", f"not recordable in {folder}: {exc}") from exc

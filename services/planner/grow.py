@@ -35,7 +35,7 @@ from services.encoder.checkpoint import load_vae, read_vae_config
 from services.encoder.model import VAE
 from services.planner import versions
 from services.planner.build import LABELS
-from services.planner.evaluate import label_nodes
+from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, load_calibration, match, save_calibration
 from services.planner.members import MEMBERS, Members
@@ -103,9 +103,20 @@ def contradictions(
     return found
 
 
-def components(k: int, edges: np.ndarray) -> int:
+def node_components(k: int, edges: np.ndarray) -> np.ndarray:
+    """The connected component of each of k nodes."""
     graph = sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(k, k))
-    return int(connected_components(graph, directed=False)[0]) if k else 0
+    return connected_components(graph, directed=False)[1]
+
+
+def components(k: int, edges: np.ndarray) -> int:
+    return int(node_components(k, edges).max()) + 1 if k else 0
+
+
+def state_labels(roadmap: Roadmap, members: Members) -> NodeLabels:
+    """Each node's majority true state over its images that came with one (a robot's do not)."""
+    known = np.where(members.has_state.astype(bool), roadmap.point_node, -1)
+    return label_nodes(known, members.states, roadmap.num_nodes)
 
 
 def grow(
@@ -305,8 +316,7 @@ def _grow_model(
     grown.save(partial)
     save_calibration(calibration, partial)
     everything.save(partial)
-    with_state = np.where(everything.has_state.astype(bool), grown.point_node, -1)
-    labels = label_nodes(with_state, everything.states, grown.num_nodes)
+    labels = state_labels(grown, everything)
     if everything.has_state.any() and labels.members.all():
         (partial / LABELS).write_text(json.dumps(labels.to_json(task)) + "\n")
     elif everything.has_state.any():  # a new node of a robot's images only: no state to name

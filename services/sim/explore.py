@@ -17,16 +17,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse.csgraph import connected_components
 from tqdm import tqdm
 
 from services.apn.train import propose
-from services.data.experience import ExperienceLog, Recorder
+from services.data.experience import ExperienceLog, Recorder, tuple_arrays
 from services.encoder.checkpoint import read_vae_config
 from services.planner.action_plans import ActionPlanner
-from services.planner.evaluate import label_nodes
-from services.planner.grow import grow, grow_model, load_members
+from services.planner.grow import grow, grow_model, load_members, node_components, state_labels
 from services.planner.members import Members
 from services.planner.roadmap import Roadmap, pair_distances
 from services.sim.worlds import has_world, make_world
@@ -61,11 +58,8 @@ class ExploreConfig:
 def shape_of(roadmap: Roadmap) -> tuple[np.ndarray, np.ndarray]:
     """(component of each node, degree of each node)."""
     k = roadmap.num_nodes
-    e = roadmap.edges
-    graph = sparse.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(k, k))
-    component = connected_components(graph, directed=False)[1]
-    degree = np.bincount(e.ravel(), minlength=k)
-    return component, degree
+    degree = np.bincount(roadmap.edges.ravel(), minlength=k)
+    return node_components(k, roadmap.edges), degree
 
 
 def thinness(roadmap: Roadmap) -> np.ndarray:
@@ -226,8 +220,7 @@ def explore(
 def _node_states(task: Task, roadmap: Roadmap, members: Members) -> list[Any]:
     """The state recorded most often among each node's images, where to start the world;
     None for a node whose images came without states (a robot's)."""
-    known = np.where(members.has_state.astype(bool), roadmap.point_node, -1)
-    labels = label_nodes(known, members.states, roadmap.num_nodes)
+    labels = state_labels(roadmap, members)
     return [
         task.array_to_state(s) if n else None
         for s, n in zip(labels.states, labels.members, strict=True)
@@ -235,9 +228,5 @@ def _node_states(task: Task, roadmap: Roadmap, members: Members) -> list[Any]:
 
 
 def _encode(vae: Any, task: Task, rows: list[tuple]) -> Members:
-    image1, u, image2, s1, s2 = zip(*rows, strict=True)
-    u = np.stack([task.action_to_array(x) for x in u])
-    states = tuple(np.stack([task.state_to_array(s) for s in x]) for x in (s1, s2))
-    return Members.of_images(
-        vae, np.stack(image1), np.stack(image2), u, (u >= 0).any(axis=1), states
-    )
+    image1, image2, u, state1, state2 = tuple_arrays(task, rows)
+    return Members.of_images(vae, image1, image2, u, (u >= 0).any(axis=1), (state1, state2))
