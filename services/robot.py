@@ -52,7 +52,7 @@ class RobotPlanner:
         )
 
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
         body = {
             "task": self.task_name,
@@ -61,6 +61,7 @@ class RobotPlanner:
             "max_plans": max_plans,
             "robot_id": self.robot_id,
             "include_images": False,
+            "expect_node": expect,
         }
         plan_id = self._request(body)
         published = self._published(plan_id)

@@ -101,9 +101,11 @@ class PlanningClient:
         max_plans: int = 8,
         include_images: bool = True,
         deadline: float | None = None,
+        expect_node: int | None = None,
     ) -> PlanOutcome:
         """Plans from start to goal; every call shares one deadline (`time.monotonic()`), so a
-        hang anywhere costs the caller that budget once, not once per call after slow ones."""
+        hang anywhere costs the caller that budget once, not once per call after slow ones.
+        `expect_node`: the node a closed loop's last step was meant to reach (PathsRequest)."""
         deadline = deadline or self.deadline()
         images_in = EncodeRequest(task=self.task_name, images=WireArray.of(np.stack([start, goal])))
         encoding = self._call("encoder", "encode", images_in, EncodeReply, deadline)
@@ -115,6 +117,7 @@ class PlanningClient:
             z_goal=WireArray.of(z_goal),
             max_plans=max_plans,
             errors=encoded.errors,
+            expect_node=expect_node,
         )
         searching = self._call("planner", "paths", search, PathsReply, deadline)
         found: PathsReply = searching.result()
@@ -187,11 +190,16 @@ class PlanningClient:
         return PlanOutcome(plans, reason, timings(calls), match)
 
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, include_images: bool = False
+        self,
+        start: np.ndarray,
+        goal: np.ndarray,
+        max_plans: int = 8,
+        include_images: bool = False,
+        expect: int | None = None,
     ) -> list[VisualActionPlan]:
         """The closed loop's Planner protocol: plans only, no decoded images unless asked;
         UnknownImageError when the planner refused an end."""
-        outcome = self.plan_with_reason(start, goal, max_plans, include_images)
+        outcome = self.plan_with_reason(start, goal, max_plans, include_images, expect_node=expect)
         end = None if outcome.match is None else refused_end(outcome.match)
         if end is not None and outcome.match is not None:
             raise UnknownImageError(end, outcome.reason or f"the {end} is not known", outcome.match)

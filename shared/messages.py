@@ -96,6 +96,9 @@ class PathsRequest(TaskMessage):
     z_goal: WireArray
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
     errors: WireArray | None = None  # float32 (2, 2): both images' EncodeReply.errors
+    # the node a closed loop's last step was meant to reach (the last plan's nodes[1]): the
+    # path starts there where the start image is known there too (knowing.keep_place)
+    expect_node: int | None = Field(None, ge=0)
 
 
 class PathsReply(Message):

@@ -182,7 +182,12 @@ class Gateway:
         images = self._images(request.task, endpoints, deadline)
         client = self.client(request.task)
         outcome = client.plan_with_reason(
-            images["start"], images["goal"], request.max_plans, request.include_images, deadline
+            images["start"],
+            images["goal"],
+            request.max_plans,
+            request.include_images,
+            deadline,
+            request.expect_node,
         )
         response = PlanResponse(
             plan_id=uuid.uuid4().hex,

@@ -89,6 +89,14 @@ class PlanRequest(TaskRequest):
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
     robot_id: str | None = Field(None, pattern=ROBOT_ID_PATTERN)
     include_images: bool = True
+    expect_node: int | None = Field(
+        None,
+        ge=0,
+        description="a robot re-planning after a step: the node that step was meant to reach "
+        "(its plan's nodes[1]). The plans start there where the start image is known there "
+        "too, so that a state the roadmap holds in several nodes is not re-planned from each "
+        "in turn; ignored otherwise",
+    )
 
 
 class Plan(BaseModel):

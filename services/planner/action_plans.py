@@ -50,8 +50,6 @@ class ActionPlanner:
     def encode(self, image: np.ndarray) -> np.ndarray:
         return self.planner.encode(image[None])[0]
 
-    follows = True  # takes the closed loop's `expect` (VisualPlanner.plan_latent)
-
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:

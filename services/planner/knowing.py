@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from services.encoder.checkpoint import decode_latents
 from services.encoder.model import VAE
 from services.planner.regions import metric_p
-from services.planner.roadmap import Roadmap
+from services.planner.roadmap import Roadmap, pair_distances
 from shared.checkpoint import replace_atomically
 from shared.plans import Match, UnknownImageError, refused_end
 
@@ -179,6 +179,19 @@ def check_ends(
         worst = int(terms[0 if end == "start" else 1].argmax())
         raise UnknownImageError(end, refusal(end, matched[end], calibration, worst), matched)
     return matched
+
+
+def keep_place(
+    roadmap: Roadmap, calibration: Calibration, z_start: np.ndarray, start: int, expect: int | None
+) -> int:
+    """The node to plan from: `expect` (the node a closed loop's last step was meant to reach)
+    where the start image is known there too, else the matched `start`. A state whose images
+    lie over several nodes (a grown roadmap's twins) would otherwise send each re-plan from
+    another twin, round in circles. An `expect` the roadmap does not have is ignored."""
+    if expect is None or expect == start or not 0 <= expect < roadmap.num_nodes:
+        return start
+    gap = pair_distances(z_start, roadmap.nodes[expect], roadmap.config.metric)
+    return expect if bool(gap <= calibration.node_thresholds[expect]) else start
 
 
 def save_calibration(calibration: Calibration, roadmap_dir: Path | str) -> Path:

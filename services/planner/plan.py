@@ -13,7 +13,7 @@ from services.encoder.checkpoint import decode_latents, encode_images
 from services.encoder.model import VAE
 from services.planner import knowing
 from services.planner.knowing import Calibration
-from services.planner.roadmap import Roadmap, pair_distances
+from services.planner.roadmap import Roadmap
 from shared.plans import Match
 
 
@@ -72,28 +72,18 @@ class VisualPlanner:
         """All shortest paths; UnknownImageError when an end is not known (a calibrated
         planner needs both images' reconstruction errors, from `look`).
 
-        `expect`: the node a closed loop's last step was meant to reach. Where the start image
-        is known there too, the plan starts there rather than at the nearest node: a state
-        whose images lie over several nodes (a grown roadmap's twins) would otherwise send
-        each re-plan from another twin, round in circles.
+        `expect`: the node a closed loop's last step was meant to reach (`knowing.keep_place`).
         """
         if self.calibration is not None:
             if errors is None:
                 raise ValueError("a calibrated planner needs the images' reconstruction errors")
             ends = knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal, errors)
             start, goal = ends["start"].node, ends["goal"].node  # found while matching
-            if expect is not None and expect != start and self._known_at(z_start, expect):
-                start = expect
+            start = knowing.keep_place(self.roadmap, self.calibration, z_start, start, expect)
         else:
             start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
         paths = self.roadmap.shortest_paths(start, goal, max_paths=max_paths)
         return [LatentPlan(p, self.roadmap.nodes[p]) for p in paths]
-
-    def _known_at(self, z: np.ndarray, node: int) -> bool:
-        """Whether a latent lies within the calibrated bound of a given node."""
-        assert self.calibration is not None
-        gap = pair_distances(z, self.roadmap.nodes[node], self.roadmap.config.metric)
-        return bool(gap <= self.calibration.node_thresholds[node])
 
     def plan(self, start: np.ndarray, goal: np.ndarray, max_paths: int = 16) -> list[LatentPlan]:
         z, errors = self.look(np.stack([start, goal]))

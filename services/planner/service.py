@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from services.planner.knowing import Calibration, check_ends, load_calibration
+from services.planner.knowing import Calibration, check_ends, keep_place, load_calibration
 from services.planner.roadmap import Roadmap
 from services.planner.versions import current_version, version_dir
 from services.runtime import ServiceContext
@@ -130,6 +130,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
                 roadmap_version=now.version,
             )
         start, goal = matched["start"].node, matched["goal"].node
+        start = keep_place(roadmap, calibration, z_start, start, request.expect_node)
         found = roadmap.shortest_paths(start, goal, max_paths=request.max_plans)
         node_ids = sorted({n for path in found for n in path})
         return PathsReply(

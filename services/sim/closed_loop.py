@@ -21,8 +21,10 @@ from shared.tasks.base import IllegalActionError, Task, World, WorldError, optim
 
 class Planner(Protocol):
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = ...
-    ) -> list[VisualActionPlan]: ...
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = ..., expect: int | None = ...
+    ) -> list[VisualActionPlan]:
+        """`expect`: the node the loop's last step was meant to reach (knowing.keep_place)."""
+        ...
 
 
 @dataclass
@@ -71,8 +73,7 @@ def run_episode(
     state = world.reset(start, rng)
     episode = Episode(success=False, reason="max_steps", final_state=state, states=[state])
     last: np.ndarray | None = None  # the image seen after the last action
-    expect: dict[str, int] = {}  # the node the last step was meant to reach, for planners
-    follows = getattr(planner, "follows", False)  # that can keep the loop's place
+    expect: int | None = None  # the node the last step was meant to reach
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
@@ -80,7 +81,7 @@ def run_episode(
         if record is not None and last is not None and not np.array_equal(last, seen):
             record(last, None, seen, state, state)
         try:
-            plans = planner.plan(seen, goal_image, max_plans, **(expect if follows else {}))
+            plans = planner.plan(seen, goal_image, max_plans, expect)
         except UnknownImageError as refused:  # never act on a scene the model does not know
             episode.reason = f"unknown_{refused.end}"
             episode.detail = refused.reason
@@ -109,7 +110,7 @@ def run_episode(
         except WorldError as exc:
             episode.reason = f"physics: {exc}"
             break
-        expect = {"expect": plan.nodes[1]}
+        expect = plan.nodes[1]
         episode.actions.append(plan.actions[0])
         episode.states.append(state)
         episode.images.append(last := world.render())

@@ -18,7 +18,7 @@ class OraclePlanner:
     def __init__(self, world, goal):
         self.world, self.goal = world, goal
 
-    def plan(self, start, goal, max_plans=8):
+    def plan(self, start, goal, max_plans=8, expect=None):
         task, state = self.world.task, self.world.read_state()
         if state == self.goal:
             return [VisualActionPlan([0], [start], [], [], [])]
@@ -30,7 +30,7 @@ class FixedPlanner:
     def __init__(self, plans):
         self.plans = plans
 
-    def plan(self, start, goal, max_plans=8):
+    def plan(self, start, goal, max_plans=8, expect=None):
         return self.plans
 
 
@@ -74,7 +74,7 @@ class ScenePlanner:
     def __init__(self, world, goal, known):
         self.oracle, self.known, self.calls = OraclePlanner(world, goal), known, 0
 
-    def plan(self, start, goal, max_plans=8):
+    def plan(self, start, goal, max_plans=8, expect=None):
         self.calls += 1
         if self.calls > self.known:
             match = {"start": Match(False, 4.2, 7), "goal": Match(True, 0.1, 3)}
@@ -144,7 +144,7 @@ class NodePlanner:
     def __init__(self, world, lie=False):
         self.world, self.lie = world, lie
 
-    def plan(self, start, goal, max_plans=8):
+    def plan(self, start, goal, max_plans=8, expect=None):
         task, seen = self.world.task, self.world.seen
         states, actions = shortest_path(task, seen[start.tobytes()], seen[goal.tobytes()])
         if self.lie and len(actions) > 1:
