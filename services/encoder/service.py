@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.encoder.checkpoint import decode_latents, encode_images, load_vae
-from services.planner.knowing import reconstruction_errors
+from services.encoder.checkpoint import decode_latents, load_vae
+from services.planner.knowing import look
 from services.runtime import ServiceContext
 from shared.bus import Batched, Operation
 from shared.messages import (
@@ -36,8 +36,7 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
 
     def encode(batches: list[np.ndarray]) -> list[EncodeReply]:
         images = np.concatenate(batches)
-        latents = encode_images(vae, images)[0]
-        errors = reconstruction_errors(vae, images, latents)  # for knowing the images
+        latents, errors = look(vae, images)  # errors: for knowing the images
         ends = np.cumsum([len(batch) for batch in batches])[:-1]
         return [
             EncodeReply(latents=WireArray.of(z), errors=WireArray.of(e.astype(np.float32)))

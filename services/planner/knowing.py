@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from services.encoder.checkpoint import decode_latents
-from services.encoder.model import VAE
+from services.encoder.model import VAE, to_tensor, to_uint8
 from services.planner.regions import metric_p
 from services.planner.roadmap import Roadmap, pair_distances
 from shared.checkpoint import replace_atomically
@@ -43,6 +43,7 @@ VERSION = 3
 QUANTILE = 0.999
 FACTOR = 2.0
 PATCHES = 4  # a patch is this fraction of the frame's side, moved by half a patch
+BATCH = 250  # images a pass: small enough to stay in the cache
 MIN_MEMBERS = 20  # a node with fewer training images takes the pooled distance quantile
 
 
@@ -77,17 +78,34 @@ def reconstruction_errors(vae: VAE, images: np.ndarray, latents: np.ndarray) -> 
     """(N, 2) mean squared errors (pixels in [0, 1]) of the decoded encoder means: over the
     whole image and over its worst patch."""
     errors = np.empty((len(images), 2), np.float64)
-    size = images.shape[1]
-    patch = max(1, size // PATCHES)
-    for start in range(0, len(images), 500):
-        part = slice(start, start + 500)
-        drawn = decode_latents(vae, np.asarray(latents[part], np.float32)).astype(np.float32)
-        gaps = ((drawn - images[part].astype(np.float32)) / 255.0) ** 2
-        errors[part, 0] = gaps.reshape(len(drawn), -1).mean(1)
-        maps = torch.from_numpy(gaps.mean(-1))[:, None]
-        pooled = F.avg_pool2d(maps, patch, stride=max(1, patch // 2))
-        errors[part, 1] = pooled.flatten(1).max(1).values.numpy()
+    for start in range(0, len(images), BATCH):
+        part = slice(start, start + BATCH)
+        drawn = decode_latents(vae, np.asarray(latents[part], np.float32))
+        errors[part] = _errors(torch.from_numpy(drawn), torch.from_numpy(images[part]))
     return errors
+
+
+@torch.inference_mode()
+def look(vae: VAE, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Encoder means (N, D) float32 and reconstruction errors (N, 2) of uint8 images, in one
+    pass per batch (each batch is encoded and redrawn while it is in the cache)."""
+    latents = np.empty((len(images), vae.config.latent_dim), np.float32)
+    errors = np.empty((len(images), 2), np.float64)
+    for start in range(0, len(images), BATCH):
+        part = slice(start, start + BATCH)
+        pixels = torch.from_numpy(np.ascontiguousarray(images[part]))
+        mu, _ = vae.encode(to_tensor(pixels).contiguous(memory_format=torch.channels_last))
+        latents[part] = mu.numpy()
+        errors[part] = _errors(to_uint8(vae.decode(mu)), pixels)
+    return latents, errors
+
+
+def _errors(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:
+    """(B, 2): whole-image and worst-patch mean squared errors of uint8 (B, H, W, 3) drawings."""
+    gaps = ((drawn.float() - images.float()) / 255.0) ** 2
+    patch = max(1, images.shape[1] // PATCHES)
+    pooled = F.avg_pool2d(gaps.mean(-1)[:, None], patch, stride=max(1, patch // 2))
+    return torch.stack([gaps.flatten(1).mean(1), pooled.flatten(1).max(1).values], 1).numpy()
 
 
 def distances(roadmap: Roadmap, latents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

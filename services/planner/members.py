@@ -14,7 +14,7 @@ from safetensors.numpy import load_file, save_file
 
 from services.encoder.checkpoint import encode_images
 from services.encoder.model import VAE
-from services.planner.knowing import reconstruction_errors
+from services.planner.knowing import look
 from services.planner.roadmap import RoadmapError
 from shared.checkpoint import replace_atomically
 from shared.dataset import Dataset
@@ -85,12 +85,11 @@ class Members:
             raise ValueError(
                 f"the VAE takes {model.config.image_size} px images, got {image1.shape[1]} px"
             )
-        mu1, mu2 = encode_images(model, image1)[0], encode_images(model, image2)[0]
-        errors = [reconstruction_errors(model, x, mu) for x, mu in ((image1, mu1), (image2, mu2))]
+        (mu1, errors1), (mu2, errors2) = look(model, image1), look(model, image2)
         n = len(u)
         return cls(
             points=interleave(mu1, mu2).astype(np.float32),
-            errors=interleave(*errors).astype(np.float32),
+            errors=interleave(errors1, errors2).astype(np.float32),
             actions=np.asarray(u),
             a=np.asarray(a, np.uint8),
             states=interleave(*states) if states is not None else np.zeros((2 * n, 0), np.int8),

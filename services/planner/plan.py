@@ -38,18 +38,21 @@ class VisualPlanner:
 
     def encode(self, images: np.ndarray) -> np.ndarray:
         """uint8 (N, H, W, 3) -> encoder means (N, D)."""
+        self._check(images)
+        return encode_images(self.vae, images)[0]
+
+    def look(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Encoder means and reconstruction errors: what planning and knowing need."""
+        self._check(images)
+        return knowing.look(self.vae, images)
+
+    def _check(self, images: np.ndarray) -> None:
         size = self.vae.config.image_size
         if images.ndim != 4 or images.shape[1:] != (size, size, 3) or images.dtype != np.uint8:
             raise ValueError(
                 f"images must be uint8 of shape (N, {size}, {size}, 3), "
                 f"got {images.dtype} {images.shape}"
             )
-        return encode_images(self.vae, images)[0]
-
-    def look(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Encoder means and reconstruction errors: what planning and knowing need."""
-        z = self.encode(images)
-        return z, knowing.reconstruction_errors(self.vae, images, z)
 
     def match(
         self, z_start: np.ndarray, z_goal: np.ndarray, errors: np.ndarray
