@@ -32,6 +32,7 @@ from shared.plans import Match, UnknownImageError, VisualActionPlan, refused_end
 from shared.tasks import get_task
 
 log = logging.getLogger(__name__)
+REPORT_EVERY = 8  # experience tuples a report (the gateway takes up to 64)
 
 
 class RobotPlanner:
@@ -46,6 +47,7 @@ class RobotPlanner:
         self.task = get_task(task)
         self.timeout_s = timeout_s
         self._plans: queue.Queue[dict[str, Any]] = queue.Queue()
+        self._reports: list[dict[str, Any]] = []  # experience not yet sent
         self.subscriber = session.declare_subscriber(
             robot_plan_key(robot_id),
             lambda sample: self._plans.put(json.loads(sample.payload.to_bytes())),
@@ -115,18 +117,24 @@ class RobotPlanner:
     def report(
         self, before: np.ndarray, action: Any, after: np.ndarray, *_states: Any
     ) -> int | None:
-        """Tell `lsr/experience/{task}` what was done and seen (run_episode's `record`); the
-        tuples the gateway holds now, or None where it could not record (the robot goes on)."""
-        body = {
-            "task": self.task_name,
-            "tuples": [
-                {
-                    "before": png_b64(before),
-                    "action": None if action is None else self.task.action_to_json(action),
-                    "after": png_b64(after),
-                }
-            ],
-        }
+        """Keep what was done and seen (run_episode's `record`) and tell `lsr/experience/{task}`
+        every REPORT_EVERY tuples (one shard per report on the gateway's side); the tuples the
+        gateway holds after a report, None where nothing was sent or it could not record."""
+        self._reports.append(
+            {
+                "before": png_b64(before),
+                "action": None if action is None else self.task.action_to_json(action),
+                "after": png_b64(after),
+            }
+        )
+        return self.flush() if len(self._reports) >= REPORT_EVERY else None
+
+    def flush(self) -> int | None:
+        """Send the kept tuples (the robot goes on whatever the answer: a failure is logged)."""
+        if not self._reports:
+            return None
+        body = {"task": self.task_name, "tuples": self._reports}
+        self._reports = []
         key = experience_key(self.task_name)
         for reply in self.session.get(key, payload=json.dumps(body), encoding=JSON, timeout=5.0):
             if reply.ok is not None:
@@ -177,4 +185,5 @@ def run_robot(
                 record=planner.report if report else None,
             )
     finally:
+        planner.flush()
         planner.close()

@@ -31,6 +31,7 @@ from shared.bus import (
     open_session,
     service_key,
 )
+from shared.dataset import load_dataset
 from shared.messages import PathsReply, WireArray
 from shared.tasks import get_task
 from shared.zenoh_access import write_deployment
@@ -69,6 +70,7 @@ def stack(tmp_path_factory, access):
         models=(MODEL, CLOTH_MODEL),
         log_dir=tmp_path_factory.mktemp("stack-logs"),
         zenoh_access=access,
+        env={"LSR_EXPERIENCE_DIR": str(tmp_path_factory.mktemp("experience"))},
     )
     with Stack(config) as running:
         running.start()
@@ -368,7 +370,7 @@ def test_execute_reaches_the_goal(http):
     )
 
 
-def test_robot_client_reaches_its_goal(stack, access):
+def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
     result = subprocess.run(
         [
             sys.executable,
@@ -383,6 +385,7 @@ def test_robot_client_reaches_its_goal(stack, access):
             json.dumps(START),
             "--goal-state",
             json.dumps(GOAL),
+            "--report",
         ],
         capture_output=True,
         text=True,
@@ -391,6 +394,14 @@ def test_robot_client_reaches_its_goal(stack, access):
     )
     assert result.returncode == 0, result.stdout + result.stderr
     assert "[r2] step 1:" in result.stdout and "reached the goal" in result.stdout
+    # Every executed step reached the gateway's experience folder over zenoh, with its action.
+    steps = result.stdout.count("[r2] step ")
+    recorded = load_dataset(Path(stack.config.env["LSR_EXPERIENCE_DIR"]) / "box_stacking")
+    assert int(recorded.a.sum()) == steps >= 5
+    state = TASK.parse_state(START)
+    for u in recorded.u[recorded.a == 1]:
+        state = TASK.apply(state, TASK.array_to_action(u))  # the actions as executed, in order
+    assert state == TASK.parse_state(GOAL)
 
 
 def test_an_impostor_planner_and_strangers_are_refused_while_the_stack_serves(stack, http, access):

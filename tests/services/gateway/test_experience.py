@@ -90,3 +90,31 @@ def test_without_an_experience_folder_reports_are_unavailable(gateway_with, enco
     for url in gateway_with():
         reply = httpx.post(f"{url}/experience", json=body((image(1), None, image(2))), timeout=30)
         assert reply.status_code == 503 and "LSR_EXPERIENCE_DIR" in reply.text
+
+
+def test_a_robot_reports_in_batches_and_sends_the_rest_when_it_stops(recording, router_endpoint):
+    from services.data.experience import has_experience
+    from services.robot import REPORT_EVERY, RobotPlanner
+    from shared.tasks import get_task
+
+    _, folder = recording
+    log = folder / "box_stacking"
+    before = len(load_dataset(log)) if has_experience(log) else 0
+    move = get_task("box_stacking").parse_action(MOVE)
+    robot = open_session(BusConfig(connect=[router_endpoint], open_timeout_s=5))
+    planner = RobotPlanner(robot, "r9", "box_stacking")
+    try:
+        time.sleep(0.3)
+        still = np.full((SIZE, SIZE, 3), 40, np.uint8)
+        answers = [planner.report(still, move, still + i) for i in range(REPORT_EVERY + 2)]
+        assert answers[: REPORT_EVERY - 1] == [None] * (REPORT_EVERY - 1)  # kept, not sent
+        assert answers[REPORT_EVERY - 1] == before + REPORT_EVERY  # one report of a batch
+        assert answers[REPORT_EVERY:] == [None, None]
+        assert planner.flush() == before + REPORT_EVERY + 2
+        assert planner.flush() is None  # nothing left to send
+    finally:
+        planner.close()
+        close_quietly(robot)
+    data = load_dataset(folder / "box_stacking")
+    assert data.a[before:].tolist() == [1] * (REPORT_EVERY + 2)
+    assert [int(x[0, 0, 0]) for x in data.image2[before:]] == [40 + i for i in range(10)]
