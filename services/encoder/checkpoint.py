@@ -66,6 +66,8 @@ def decode_latents(model: VAE, z: np.ndarray, batch_size: int = 500) -> np.ndarr
     out = []
     for start in range(0, len(z), batch_size):
         out.append(
-            to_uint8(model.decode(torch.from_numpy(z[start : start + batch_size]).float())).numpy()
+            to_uint8(
+                model.decode(torch.from_numpy(z[start : start + batch_size]).float(), True)
+            ).numpy()
         )
     return np.concatenate(out)

