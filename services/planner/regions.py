@@ -18,7 +18,7 @@ from scipy.spatial.distance import cdist
 Metric = Literal["l1", "l2", "inf"]
 
 METRICS: tuple[Metric, ...] = ("l1", "l2", "inf")
-_CDIST_NAME: dict[str, str] = {"l1": "cityblock", "l2": "euclidean", "inf": "chebyshev"}
+CDIST_NAME: dict[str, str] = {"l1": "cityblock", "l2": "euclidean", "inf": "chebyshev"}
 
 # Relative slack added to every bound used to skip work (triangle inequality, projections).
 # Float64 distances and projections of latents are off by about 1e-14 relative, far less, so the
@@ -138,7 +138,7 @@ def _greedy_cover(
     owner = np.full(n, -1, dtype=np.int64)
     leaders: list[int] = []
     found: list[tuple[int, int]] = []
-    name = _CDIST_NAME[metric]
+    name = CDIST_NAME[metric]
     for i in range(n):
         if owner[i] >= 0:
             continue
@@ -271,7 +271,7 @@ def _touch(
         xa = xa[keep_a]
         xb = xb[keep_b]
         direction = xb.mean(axis=0) - xa.mean(axis=0)
-    name = _CDIST_NAME[metric]
+    name = CDIST_NAME[metric]
     step = max(1, _SEARCH_BLOCK // len(xb))
     return any(
         bool((cdist(xa[s : s + step], xb, name) < eps).any()) for s in range(0, len(xa), step)

@@ -3,10 +3,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.planner.grow import contradictions, fresh_regions, grow
+from services.planner.grow import contradictions, fresh_regions, grow, same_state_radius
 from services.planner.knowing import calibrate
 from services.planner.members import Members
-from services.planner.roadmap import RoadmapConfig, build_roadmap
+from services.planner.roadmap import RoadmapConfig, build_roadmap, pair_distances
 from shared.tasks import get_task
 
 TASK = get_task("box_stacking")
@@ -65,7 +65,7 @@ def test_growth_adds_the_edges_experience_shows_and_keeps_the_built_nodes():
     assert len(everything.points) == len(m.points) + 6 == len(grown.point_node)
 
 
-def test_an_edge_contradicted_more_than_supported_is_dropped():
+def test_an_edge_contradicted_more_than_supported_is_flagged_and_kept():
     roadmap, known, m = base(BASE)
     # Action 1 took A to B once in the data; experience executes it from A three times and
     # sees C each time.
@@ -73,8 +73,8 @@ def test_an_edge_contradicted_more_than_supported_is_dropped():
     grown, _, _, report = grow(roadmap, known, m, experience, TASK)
     a, b, c = (int(roadmap.nearest_node(np.array([CENTRES[x], 0.0]))) for x in "ABC")
     edges = {tuple(e) for e in grown.edges.tolist()}
-    assert (min(a, b), max(a, b)) not in edges and (min(a, c), max(a, c)) in edges
-    assert report["dropped_edges"] == [[min(a, b), max(a, b)]]
+    assert (min(a, b), max(a, b)) in edges and (min(a, c), max(a, c)) in edges
+    assert report["flagged_edges"] == [[min(a, b), max(a, b), 3, 1]]
     assert report["contradictions"] == 3
 
 
@@ -84,7 +84,44 @@ def test_contradictions_need_the_same_action():
     everything = m + experience
     joined = [roadmap.nearest_node(p) for p in experience.points]
     node = np.concatenate([roadmap.point_node, joined])
-    assert contradictions(TASK, node, everything, np.array([len(m.a)])) == {}
+    assert contradictions(TASK, node, everything, np.array([len(m.a)]), 1.0, "l1") == {}
+
+
+def test_an_outcome_in_another_node_of_the_same_state_is_no_contradiction():
+    """Twins: action 1 from A led to B in the data; executed again it lands in another node
+    whose image lies within the same-state radius of B's: not a contradiction. Farther: one."""
+    roadmap, _, m = base(BASE)
+    twin = roadmap.num_nodes  # a node id the experience's image is said to be in
+    for offset, expected in ((0.3, 0), (5.0, 1)):
+        experience = members([("A", "B", 1)], seed=3)
+        experience.points[1] += offset
+        everything = m + experience
+        node = np.concatenate([roadmap.point_node, [roadmap.nearest_node(experience.points[0])]])
+        node = np.concatenate([node, [twin]])
+        found = contradictions(TASK, node, everything, np.array([len(m.a)]), 1.0, "l1")
+        assert sum(found.values()) == expected
+
+
+def test_the_same_state_radius_lies_between_one_look_and_one_move():
+    _, _, m = base(BASE)
+    radius = same_state_radius(m, "l1", fallback=-1.0)
+    still = pair_distances(m.points[0::2], m.points[1::2], "l1")[m.a == 0]
+    assert still.max() < radius < 10.0  # A-B and C-D, one move each, lie 10 apart
+    no_pairs = replace(m, a=np.ones_like(m.a))
+    assert same_state_radius(no_pairs, "l1", fallback=-1.0) == -1.0
+
+
+def test_an_image_known_at_a_node_but_near_none_of_its_images_does_not_join_it():
+    """3 away from B: within B's knowing bound, but B's images lie within 0.2 of each other and
+    one move is 10: another state. Three such images linked to D by an action make a node."""
+    roadmap, known, m = base(BASE)
+    wide = replace(known, node_thresholds=(50.0,) * roadmap.num_nodes)
+    experience = members([("D", "B", 6)] * 3 + [("B", "B", 0)], seed=4)
+    experience.points[1::2] += np.array([3.0, 0.0], np.float32)  # every "after" image
+    grown, _, _, report = grow(roadmap, wide, m, experience, TASK)
+    assert report["images_known_elsewhere"] == 4 and report["new_nodes"] == 1
+    b = int(roadmap.nearest_node(np.array([CENTRES["B"], 0.0])))
+    assert not np.isin(grown.point_node[len(m.points) :][1::2], [b]).any()
 
 
 def test_repeated_new_images_linked_by_an_action_make_a_node():
@@ -107,7 +144,7 @@ def test_members_add_keeps_order(rows):
 def test_each_contradicting_tuple_counts_once_however_many_pairs_support_the_edge():
     roadmap, known, m = base(BASE + [("A", "B", 1)] * 4)  # A-B by action 1, five times
     grown, _, _, report = grow(roadmap, known, m, members([("A", "C", 1)] * 2, seed=5), TASK)
-    assert report["contradictions"] == 2 and not report["dropped_edges"]
+    assert report["contradictions"] == 2 and not report["flagged_edges"]
     assert len(grown.edges) == 3  # A-B stays, A-C joins
 
 
