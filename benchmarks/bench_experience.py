@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
-from services.cli.common import single_thread_torch
 from services.data.experience import has_experience
 from services.planner.eval_vfm import run_vfm_eval
 from services.planner.grow import grow_model
@@ -185,13 +185,18 @@ def main() -> None:
     parser.add_argument("--loop-pairs", type=int, default=100, help="loop mode: tasks to run")
     parser.add_argument("--experience", type=Path, help="timing mode: tuples to grow from")
     parser.add_argument("--new", type=int, default=1000, help="timing mode: tuples to grow")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch threads (0: all, as lsr roadmap grow)"
+    )
     parser.add_argument("--figure", type=Path)
     parser.add_argument("--label", default="")
     args = parser.parse_args()
-    single_thread_torch()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     run = {"explore": run_explore, "loop": run_loop, "timing": run_timing}[args.mode]
-    result = {"mode": args.mode, "model": str(args.model), **run(args)}
+    result = {"mode": args.mode, "model": str(args.model), "threads": torch.get_num_threads()}
+    result |= run(args)
     (args.out / "results.json").write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result))
 
