@@ -6,8 +6,8 @@ calibrated knowing test of `services.planner.knowing`: growth and planning place
 alike) and lies within the same-state radius of an image already there (`same_state_radius`:
 the knowing bound refuses other worlds, not neighbouring states). The other images form
 regions among themselves by that radius, and a region as large as the pruning threshold (at
-least NEW_NODE_MIN images) that an action pair links to another node becomes a new node. Then every action pair's nodes give the edges, as
-Algorithm 1's phase 3. Guards against bad experience:
+least NEW_NODE_MIN images) that an action pair links to another node becomes a new node. Then
+every action pair's nodes give the edges, as Algorithm 1's phase 3. Guards against bad experience:
 - a tuple with an image in no node is kept for review (`review/`), not added blindly; each
   growth tries it again, since more experience may place it;
 - an executed action after which the scene is in the node it started from is a no-action
@@ -99,10 +99,10 @@ def near_members(
     near = np.zeros(len(ids), bool)
     for target in np.unique(to[to >= 0]):
         mine = np.flatnonzero(to == target)
-        members = points[np.flatnonzero(node == target)]
-        if not len(members):
+        there = points[np.flatnonzero(node == target)]
+        if not len(there):
             continue
-        gaps = cdist(points[ids[mine]], members, CDIST_NAME[metric])
+        gaps = cdist(points[ids[mine]], there, CDIST_NAME[metric])
         near[mine] = gaps.min(axis=1) <= radius
     return near
 
