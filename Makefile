@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 export MUJOCO_GL ?= egl
 
-.PHONY: install browser up test lint bench clean
+.PHONY: install browser up test lint bench mesh clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -37,6 +37,10 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_datagen.py
+
+# The stack on three hosts (network namespaces; root) and its faults under load: one JSON line.
+mesh: $(STAMP)
+	$(BIN)/python benchmarks/mesh_faults.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

@@ -84,22 +84,28 @@ class RobotPlanner:
         ]
 
     def _request(self, body: dict[str, Any]) -> str:
-        replies = self.session.get(
-            API_PLAN_KEY,
-            payload=json.dumps(body),
-            encoding=JSON,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-            timeout=self.timeout_s,
-        )
-        for reply in replies:
-            if reply.ok is None and reply.err.encoding != JSON:
-                continue  # zenoh's own timeout
-            if reply.ok is None:
-                error = json.loads(reply.err.payload.to_bytes())
-                if error.get("status") == 503:
-                    raise ServiceUnavailable("planning", str(error.get("detail")))
-                raise RuntimeError(f"plan request refused: {error}")
-            return json.loads(reply.ok.payload.to_bytes())["plan_id"]
+        """The plan id of a request. A query that ends unanswered before the timeout (the mesh
+        dropped it while routes changed, or no gateway was reachable yet) is asked again."""
+        deadline = time.monotonic() + self.timeout_s
+        while (left := deadline - time.monotonic()) > 0.05:
+            replies = self.session.get(
+                API_PLAN_KEY,
+                payload=json.dumps(body),
+                encoding=JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                timeout=left,
+            )
+            for reply in replies:
+                if reply.ok is None and reply.err.encoding != JSON:
+                    continue  # zenoh's own timeout
+                if reply.ok is None:
+                    error = json.loads(reply.err.payload.to_bytes())
+                    if error.get("status") == 503:
+                        raise ServiceUnavailable("planning", str(error.get("detail")))
+                    raise RuntimeError(f"plan request refused: {error}")
+                return json.loads(reply.ok.payload.to_bytes())["plan_id"]
+            log.warning("no answer on %s; asking again", API_PLAN_KEY)
+            time.sleep(0.05)
         raise ServiceUnavailable("gateway", f"no answer on {API_PLAN_KEY}")
 
     def _published(self, plan_id: str) -> dict[str, Any]:

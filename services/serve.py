@@ -30,12 +30,15 @@ def serve_gateway(settings: Settings) -> int:
     return 0
 
 
-def serve_router(listen: list[str]) -> int:
+def serve_router(listen: list[str], connect: list[str] = ()) -> int:
     """A zenoh router as a Python session: what zenohd does, for machines without it.
 
     It loads LSR_ZENOH_CONFIG like every process: for the router, the access-control rules and
-    the credentials dictionary (`shared.zenoh_access`)."""
-    config = BusConfig(mode="router", listen=listen, config_file=Settings().zenoh_config)
+    the credentials dictionary (`shared.zenoh_access`). `connect`: the other routers of a mesh
+    (one per host or site); a router retries them until they answer and after they drop."""
+    config = BusConfig(
+        mode="router", listen=listen, connect=connect, config_file=Settings().zenoh_config
+    )
     session = zenoh.open(config.zenoh_config())
     print(f"zenoh router listening on {', '.join(listen)}", flush=True)
     wait_for_stop_signal()

@@ -96,7 +96,7 @@ def new_instance_id() -> str:
 class BusConfig:
     """How a process joins the zenoh network: a client of routers, or the router itself."""
 
-    connect: Sequence[str] = (DEFAULT_ENDPOINT,)
+    connect: Sequence[str] | None = None  # None: a client's DEFAULT_ENDPOINT, a router's none
     mode: str = "client"
     listen: Sequence[str] = ()
     open_timeout_s: float | None = None  # None: keep retrying until a router answers
@@ -104,14 +104,22 @@ class BusConfig:
     # the router, access control (`shared.zenoh_access`). The fields above are set on top.
     config_file: Path | None = None
 
+    @property
+    def endpoints(self) -> list[str]:
+        """The endpoints it connects to: routers for a client, other routers for a router."""
+        if self.connect is None:
+            return [] if self.mode == "router" else [DEFAULT_ENDPOINT]
+        return list(self.connect)
+
     def zenoh_config(self) -> zenoh.Config:
         config = (
             zenoh.Config.from_file(str(self.config_file)) if self.config_file else zenoh.Config()
         )
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("scouting/multicast/enabled", "false")
-        if self.mode != "router":
-            config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        connect = self.endpoints
+        if connect:
+            config.insert_json5("connect/endpoints", json.dumps(connect))
         if self.listen:
             config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         return config
@@ -126,8 +134,8 @@ def open_session(config: BusConfig) -> zenoh.Session:
             return zenoh.open(config.zenoh_config())
         except zenoh.ZError as exc:
             if deadline is not None and time.monotonic() + delay > deadline:
-                raise ConnectionError(f"no zenoh router at {list(config.connect)}: {exc}") from None
-            log.warning("zenoh router at %s not reachable yet; retrying", list(config.connect))
+                raise ConnectionError(f"no zenoh router at {config.endpoints}: {exc}") from None
+            log.warning("zenoh router at %s not reachable yet; retrying", config.endpoints)
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
 

@@ -12,7 +12,9 @@ access-control rules, denying by default:
   from) and the encoder's info keys (its image size), and subscribe
   to its own `lsr/robot/{robot_id}/plan` only;
 - a monitor (`lsr ping` from outside, dashboards, tests) may watch tokens, ask every info key,
-  query `lsr/api/plan` and subscribe to every robot's plans, and declare nothing.
+  query `lsr/api/plan` and subscribe to every robot's plans, and declare nothing;
+- another router (user `router`) may carry everything under `lsr/**`: routers of several hosts
+  mesh with `lsr router --connect` and apply these rules to their own processes.
 A process without valid credentials cannot open a session at all. So a stranger can neither
 serve `lsr/planner/...` (an impostor's plans would reach robots) nor ask anything.
 
@@ -20,8 +22,8 @@ serve `lsr/planner/...` (an impostor's plans would reach robots) nor ask anythin
 
 writes `router.json5` (with the dictionary's path as the router will see it), `users.txt`
 (user:password lines, random passwords) and one `{role}.json5` per process: give each process
-its own as LSR_ZENOH_CONFIG (`lsr router` too, with `router.json5`). Every file but the
-router's rules holds secrets and is written readable by its owner only.
+its own as LSR_ZENOH_CONFIG (`lsr router` too, with `router.json5`: every router of a mesh takes
+the same one). Every file holds secrets and is written readable by its owner only.
 """
 
 from __future__ import annotations
@@ -38,6 +40,20 @@ SERVICE_ROLES = ("encoder", "planner", "apn", "sim")
 BOTH = ["ingress", "egress"]
 PROGRESS_KEYS = "lsr/sim/*/progress/*"  # `shared.bus.progress_key`
 EXPERIENCE_KEYS = "lsr/experience/*"  # `shared.bus.experience_key`: robots report, gateway records
+ROUTER_USER = "router"  # what a router of a mesh presents to the routers it connects to
+ROUTER_LEASE_MS = 2000
+ROUTER_CN = "lsr-router"  # the common name of the routers' certificate (their names: its SANs)
+MESH_MESSAGES = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "declare_queryable",
+    "query",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
 # A robot's user name embeds its id, and the dictionary is `user:password` lines.
 ACL_ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
@@ -80,10 +96,16 @@ def access_control(robots: list[str]) -> dict:
         # Steps of running episodes: the sim publishes them, the gateway streams them on.
         rule("publish-progress", ["put"], [PROGRESS_KEYS], ["ingress"]),
         rule("read-progress", ["declare_subscriber", "put"], [PROGRESS_KEYS]),
+        rule("mesh", MESH_MESSAGES, ["lsr/**"]),
     ]
     subjects = [{"id": role, "usernames": [role]} for role in (*SERVICE_ROLES, "gateway")]
     subjects.append({"id": "monitor", "usernames": ["monitor"]})
+    # A router knows the routers that connect to it by their password, and the ones it connects
+    # to by their certificate: usrpwd authenticates only the side that connects.
+    subjects.append({"id": "routers", "usernames": [ROUTER_USER]})
+    subjects.append({"id": "router-certificates", "cert_common_names": [ROUTER_CN]})
     policies = [
+        {"rules": ["mesh"], "subjects": ["routers", "router-certificates"]},
         {"rules": ["ask-services", "watch-tokens", "see-tokens"], "subjects": ["gateway", "sim"]},
         {
             "rules": ["serve-api", "publish-plans", "gateway-token", "read-progress"],
@@ -129,7 +151,7 @@ def write_private(path: Path, text: str) -> None:
 
 
 def make_tls(out: Path, hosts: list[str]) -> None:
-    """A private CA (ca.pem, ca.key) and the router's certificate for `hosts` (names or IPs),
+    """A private CA (ca.pem, ca.key) and the routers' certificate for `hosts` (names or IPs),
     made with the openssl command. Keep ca.key offline once the router's certificate exists."""
     names = [f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}" for h in hosts]
     ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
@@ -150,7 +172,7 @@ def make_tls(out: Path, hosts: list[str]) -> None:
         "-subj",
         "/CN=LSR zenoh CA",
     )
-    openssl("req", *ec, "-keyout", "router.key", "-out", "router.csr", "-subj", f"/CN={hosts[0]}")
+    openssl("req", *ec, "-keyout", "router.key", "-out", "router.csr", "-subj", f"/CN={ROUTER_CN}")
     (out / "router.ext").write_text(
         f"subjectAltName={','.join(names)}\nbasicConstraints=CA:FALSE\n"
         "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n"
@@ -188,32 +210,40 @@ def write_deployment(
     """Write the router's and every role's configuration into `out`; returns {role: path}.
 
     `dictionary_at`: where the router will read `users.txt` (default: its path in `out`).
-    `tls_hosts`: the router's host names or addresses; then links are TLS (endpoints
-    `tls/HOST:7447`): a CA and the router's certificate are made, and every process checks the
-    router against `ca.pem`, read at `files_at` (default: `out`).
+    `tls_hosts`: the routers' host names or addresses (one certificate names every router of a
+    mesh); then links are TLS (endpoints `tls/HOST:7447`): a CA and the routers' certificate are
+    made, and every process, routers too, checks a router against `ca.pem`, read at `files_at`
+    (default: `out`).
     """
     out.mkdir(parents=True, exist_ok=True)
     roles = [*SERVICE_ROLES, "gateway", "monitor", *(robot_user(r) for r in robots)]
-    passwords = {role: secrets.token_urlsafe(24) for role in roles}
+    passwords = {role: secrets.token_urlsafe(24) for role in [ROUTER_USER, *roles]}
     write_private(out / "users.txt", "".join(f"{u}:{p}\n" for u, p in passwords.items()))
     dictionary = dictionary_at or str((out / "users.txt").resolve())
     folder = files_at or str(out.resolve())
+    # A router checks its clients against the dictionary and presents its own credentials to
+    # the routers it connects to (a mesh).
+    usrpwd = {"user": ROUTER_USER, "password": passwords.pop(ROUTER_USER)}
     router: dict = {
-        "transport": {"auth": {"usrpwd": {"dictionary_file": dictionary}}},
+        "transport": {
+            "auth": {"usrpwd": {**usrpwd, "dictionary_file": dictionary}},
+            # A router whose link is cut is given up after this, not zenoh's 10 s, so that
+            # the mesh routes around a lost host while requests still have time.
+            "link": {"tx": {"lease": ROUTER_LEASE_MS, "keep_alive": 4}},
+        },
         "access_control": access_control(robots),
     }
     client_link: dict = {}
     if tls_hosts:
         make_tls(out, tls_hosts)
-        router["transport"]["link"] = {
-            "tls": {
-                "listen_private_key": f"{folder}/router.key",
-                "listen_certificate": f"{folder}/router.pem",
-            }
-        }
         client_link = {"link": {"tls": {"root_ca_certificate": f"{folder}/ca.pem"}}}
+        router["transport"]["link"]["tls"] = {
+            "listen_private_key": f"{folder}/router.key",
+            "listen_certificate": f"{folder}/router.pem",
+            **client_link["link"]["tls"],  # to check the routers it connects to
+        }
     paths = {"router": out / "router.json5"}
-    paths["router"].write_text(json.dumps(router, indent=2) + "\n")
+    write_private(paths["router"], json.dumps(router, indent=2) + "\n")
     for role, password in passwords.items():
         auth = {"usrpwd": {"user": role, "password": password}}
         client = {"transport": {"auth": auth, **client_link}}

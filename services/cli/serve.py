@@ -27,7 +27,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def cmd_router(args: argparse.Namespace) -> int:
     from services.serve import serve_router
 
-    return serve_router(args.listen)
+    return serve_router(args.listen, args.connect)
 
 
 def cmd_ping(args: argparse.Namespace) -> int:
@@ -63,6 +63,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     router = sub.add_parser("router", help="a zenoh router (a Python session in router mode)")
     router.add_argument("--listen", nargs="+", default=["tcp/127.0.0.1:7447"])
+    router.add_argument(
+        "--connect", nargs="*", default=[], help="other routers to mesh with (their endpoints)"
+    )
     router.set_defaults(handler=cmd_router)
 
     ping = sub.add_parser("ping", help="exit 0 when a service answers (container health check)")

@@ -179,3 +179,51 @@ def test_tls_links_admit_only_processes_that_trust_the_deployments_ca(tmp_path):
     finally:
         for session in [*sessions, router]:
             close_quietly(session)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
+def test_routers_mesh_over_tls_and_apply_the_rules_to_their_own_processes(tmp_path):
+    """Two routers (two sites) meshed over TLS with the same files: a planner on one serves a
+    gateway on the other; a robot on the other still may not ask it, nor serve in its name.
+    The many-host run with faults is benchmarks/mesh_faults.py."""
+    paths = write_deployment(tmp_path, robots=["arm-1"], tls_hosts=["127.0.0.1"])
+    first, second = free_port(), free_port()
+    routers = [
+        open_session(
+            BusConfig(
+                mode="router",
+                listen=[f"tls/127.0.0.1:{port}"],
+                connect=peers,
+                config_file=paths["router"],
+            )
+        )
+        for port, peers in ((first, []), (second, [f"tls/127.0.0.1:{first}"]))
+    ]
+    sessions = []
+    try:
+
+        def join(role: str, port: int) -> zenoh.Session:
+            config = BusConfig(
+                connect=[f"tls/127.0.0.1:{port}"], open_timeout_s=2, config_file=paths[role]
+            )
+            sessions.append(open_session(config))
+            return sessions[-1]
+
+        server = Server(join("planner", first), "planner", "real")
+        server.serve(service_key("planner", "t", "paths"), answer_as("real"))
+        robot = join("robot-arm-1", second)
+        impostor = Server(join("robot-arm-1", second), "planner", "impostor")
+        impostor.serve(service_key("planner", "t", "paths"), answer_as("impostor"))
+        gateway = join("gateway", second)
+        time.sleep(0.5)
+        z = DecodeRequest(task="t", latents=WireArray.of(np.zeros((1, 2), np.float32)))
+        for _ in range(4):  # across the mesh, and never from the impostor
+            reply = call(gateway, "planner", "t", "paths", z, DecodeReply, 2.0).result()
+            assert chr(reply.images.numpy()[0, 0, 0, 0]) == "r"
+        with pytest.raises(ServiceUnavailable):
+            call(robot, "planner", "t", "paths", z, DecodeReply, 0.5).result()
+        server.close()
+        impostor.close()
+    finally:
+        for session in [*sessions, *routers]:
+            close_quietly(session)
