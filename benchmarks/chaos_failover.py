@@ -39,7 +39,8 @@ BODY = {
 
 def replicas(http: httpx.Client, service: str) -> int:
     reply = http.get("/health")
-    return len(reply.json()["services"][service]["instances"])
+    instances = reply.json()["services"][service]["instances"]
+    return sum(i["task"] == "box_stacking" for i in instances)  # the task it asks for
 
 
 def wait_for(predicate, timeout_s: float = 60.0) -> None:

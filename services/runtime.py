@@ -8,8 +8,9 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import zenoh
@@ -95,43 +96,57 @@ class ServiceContext:
 Setup = Callable[[ServiceContext], Mapping[str, Operation]]
 
 
-def run_service(service: str, setup: Setup, settings: Settings) -> int:
-    """Serve until SIGINT or SIGTERM. One torch thread by default: the services share the CPU."""
+def run_service(service: str, setup: Setup, settings: Settings, models: Sequence[Path] = ()) -> int:
+    """Serve until SIGINT or SIGTERM. One torch thread by default: the services share the CPU.
+
+    `models` (default: `settings.model_dir`): the model folders it serves, one a task. One
+    process for several tasks shares the interpreter, torch and the zenoh session among them
+    (`lsr up` runs one per role): each task's operations keep their own worker threads."""
     import torch
 
     torch.set_num_threads(settings.torch_threads)
     instance = settings.instance or new_instance_id()
-    model = ModelInfo.read(settings.model_dir, settings.require_sealed_model)
+    infos = [
+        ModelInfo.read(directory, settings.require_sealed_model)
+        for directory in (models or [settings.model_dir])
+    ]
+    tasks = [model.task for model in infos]
+    if len(set(tasks)) != len(tasks):
+        raise ValueError(f"two model folders serve the same task: {tasks}")
     session = open_session(settings.bus())
-    context = ServiceContext(service, instance, model, session, settings)
-    handlers = setup(context)
-    started = time.monotonic()
-
-    def info(_: bytes) -> InfoReply:
-        return InfoReply(
-            service=service,
-            instance=instance,
-            task=model.task,
-            model_id=model.model_id,
-            image_size=model.image_size,
-            latent_dim=model.latent_dim,
-            pid=os.getpid(),
-            uptime_s=round(time.monotonic() - started, 3),
-            roadmap_version=context.status.get("roadmap_version"),
-        )
-
     server = Server(session, service, instance)
-    for operation, handler in handlers.items():
-        server.serve(service_key(service, model.task, operation), handler)
-    # Health answers come from every instance (the gateway lists them), so each has its own key.
-    server.serve(service_key(service, model.task, f"info/{instance}"), info, per_instance=False)
-    log.info("%s %s serving %s (model %s)", service, instance, model.task, model.model_id)
-    print(f"{service} {instance} ready: task {model.task}, model {model.model_id}", flush=True)
+    started = time.monotonic()
+    contexts = []
+    for model in infos:
+        context = ServiceContext(service, instance, model, session, settings)
+        contexts.append(context)
+        for operation, handler in setup(context).items():
+            server.serve(service_key(service, model.task, operation), handler)
+        # Health answers come from every instance (the gateway lists them): a key each.
+        info = partial(_info, context, started)
+        server.serve(service_key(service, model.task, f"info/{instance}"), info, False)
+        log.info("%s %s serving %s (model %s)", service, instance, model.task, model.model_id)
+        print(f"{service} {instance} ready: task {model.task}, model {model.model_id}", flush=True)
     wait_for_stop_signal()
-    context.stopping.set()
+    for context in contexts:
+        context.stopping.set()
     server.close()
     close_quietly(session)
     return 0
+
+
+def _info(context: ServiceContext, started: float, _: bytes) -> InfoReply:
+    return InfoReply(
+        service=context.service,
+        instance=context.instance,
+        task=context.model.task,
+        model_id=context.model.model_id,
+        image_size=context.model.image_size,
+        latent_dim=context.model.latent_dim,
+        pid=os.getpid(),
+        uptime_s=round(time.monotonic() - started, 3),
+        roadmap_version=context.status.get("roadmap_version"),
+    )
 
 
 def wait_for_stop_signal() -> None:

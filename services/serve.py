@@ -5,6 +5,8 @@ from __future__ import annotations
 import importlib
 import socket
 import sys
+from collections.abc import Sequence
+from pathlib import Path
 
 import zenoh
 
@@ -13,11 +15,12 @@ from shared.bus import SERVICES, BusConfig, close_quietly, host_id, instances, o
 from shared.settings import Settings
 
 
-def serve_service(service: str, settings: Settings) -> int:
+def serve_service(service: str, settings: Settings, models: Sequence[Path] = ()) -> int:
+    """One process of `service` for the model folders given (default: LSR_MODEL_DIR)."""
     if service not in SERVICES:
         raise ValueError(f"unknown service {service!r}; the services are {list(SERVICES)}")
     module = importlib.import_module(f"services.{service}.service")
-    return run_service(service, module.setup, settings)
+    return run_service(service, module.setup, settings, models)
 
 
 def serve_gateway(settings: Settings) -> int:

@@ -1,8 +1,9 @@
 """`lsr up`: a zenoh router, every service and the gateway as child processes on loopback.
 
-Each model folder (one a task) gets its own encoder, planner, APN and sim process: services
-already key their operations by task, so a task is served by adding processes, and a process
-holds one model. The same launcher starts the stack for the end-to-end tests and benchmarks.
+One process per role serves every model folder (one a task) that needs it: services key their
+operations by task, and a process per role and task would pay for the interpreter, torch and a
+zenoh session once per task (`process_per_task`, as `lsr up --process-per-task`, does that).
+The same launcher starts the stack for the end-to-end tests and benchmarks.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ class StackConfig:
     # Files of `shared.zenoh_access.write_deployment`: each child gets its role's file as
     # LSR_ZENOH_CONFIG (the router: router.json5). None: an open bus, for loopback development.
     zenoh_access: Path | None = None
+    process_per_task: bool = False  # True: a process per role and task, not per role
 
     def __post_init__(self) -> None:
         self.models = tuple(Path(m) for m in self.models)
@@ -148,10 +150,13 @@ class Stack:
     def start_service(
         self, service: str, name: str | None = None, model: Path | None = None
     ) -> subprocess.Popen:
-        """One service process for one model (default: the first); named `service-task`."""
-        model = model or self.config.models[0]
-        name = name or f"{service}-{model_task(model)}"
-        return self._spawn(name, ["serve", service, "--model", str(model)], service)
+        """One process of `service`: for `model` (named `service-task`), or for every model
+        that needs the service (named `service`)."""
+        needing = [m for m in self.config.models if service in model_services(m)]
+        models = [model] if model else needing
+        name = name or (f"{service}-{model_task(model)}" if model else service)
+        args = ["serve", service, *(a for m in models for a in ("--model", str(m)))]
+        return self._spawn(name, args, service)
 
     def start_gateway(self) -> None:
         args = ["serve", "gateway", "--host", self.config.host, "--port", str(self.config.port)]
@@ -160,9 +165,14 @@ class Stack:
     def start(self) -> None:
         self.start_router()
         self._wait_for_router()
-        for model in self.config.models:
-            for service in model_services(model):
-                self.start_service(service, model=model)
+        if self.config.process_per_task:
+            for model in self.config.models:
+                for service in model_services(model):
+                    self.start_service(service, model=model)
+        else:
+            for service in SERVICES:
+                if any(service in model_services(m) for m in self.config.models):
+                    self.start_service(service)
         self.start_gateway()
 
     def _wait_for_router(self, timeout_s: float = 15.0) -> None:

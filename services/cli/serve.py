@@ -12,16 +12,17 @@ from shared.settings import shipped_models
 def cmd_serve(args: argparse.Namespace) -> int:
     from services.serve import serve_gateway, serve_service
 
+    models = args.model or []
     settings = env_settings(
         zenoh_connect=args.connect,
-        model_dir=args.model,
+        model_dir=models[0] if models else None,
         instance=args.instance,
         host=args.host,
         port=args.port,
     )
     if args.service == "gateway":
         return serve_gateway(settings)
-    return serve_service(args.service, settings)
+    return serve_service(args.service, settings, models)
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -47,6 +48,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         zenoh_port=args.zenoh_port,
         models=models,
         zenoh_access=args.zenoh_access,
+        process_per_task=args.process_per_task,
     )
     return run_up(config)
 
@@ -54,7 +56,12 @@ def cmd_up(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     serve = sub.add_parser("serve", help="run one service (or the gateway) until SIGINT/SIGTERM")
     serve.add_argument("service", choices=["encoder", "planner", "apn", "sim", "gateway"])
-    serve.add_argument("--model", type=Path, help="model folder (env LSR_MODEL_DIR)")
+    serve.add_argument(
+        "--model",
+        type=Path,
+        action="append",
+        help="model folder (env LSR_MODEL_DIR); repeat it to serve several tasks in one process",
+    )
     serve.add_argument("--connect", help="zenoh router endpoints (env LSR_ZENOH_CONNECT)")
     serve.add_argument("--instance", help="instance id (default hostname-pid-random)")
     serve.add_argument("--host", help="gateway: address to bind (env LSR_HOST)")
@@ -90,5 +97,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="a folder written by python -m shared.zenoh_access: run the bus under its access "
         "control, each process with its role's credentials (default: an open loopback bus)",
+    )
+    up.add_argument(
+        "--process-per-task",
+        action="store_true",
+        help="a process per service and task (default: one per service for every task)",
     )
     up.set_defaults(handler=cmd_up)

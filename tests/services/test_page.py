@@ -243,7 +243,7 @@ def test_a_stopped_service_shows_as_down_within_seconds(page, stack):
     console.expect(503)  # /health while the APN is down
     apn = page.locator('#health-services li[data-service="apn"]')
     expect(apn).not_to_have_class("down")
-    stack.stop("apn-box_stacking")
+    stack.stop("apn")
     started = time.monotonic()
     expect(apn).to_have_class("down", timeout=10_000)
     assert time.monotonic() - started < 6.0

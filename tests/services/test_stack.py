@@ -464,14 +464,14 @@ def planners(http: httpx.Client, task: str = "box_stacking") -> int:
 def test_a_replica_takes_over_when_one_is_killed(stack, http):
     stack.start_service("planner", name="planner-2")
     wait_for(lambda: planners(http) == 2)
-    stack.stop("planner-box_stacking", sig=signal.SIGKILL)
+    stack.stop("planner", sig=signal.SIGKILL)
     codes = [plan_ok(http) for _ in range(10)]
     assert codes == [200] * 10
     wait_for(lambda: planners(http) == 1)
 
 
 def test_a_stopped_service_gives_503_by_name_then_recovers(stack, http):
-    stack.stop("apn-box_stacking")
+    stack.stop("apn")
     started = time.monotonic()
     reply = http.post("/plan", json=GOOD)
     assert reply.status_code == 503 and "apn" in reply.json()["detail"]
