@@ -13,17 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import httpx
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from services.stack import Stack, StackConfig, free_port, model_task  # noqa: E402
-from shared.settings import shipped_models  # noqa: E402
+from services.stack import Stack, StackConfig, free_port, model_task
+from shared.settings import shipped_models
 
 STATES = {
     "box_stacking": (

@@ -45,12 +45,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from shared.bus import SERVICES
+from shared.zenoh_access import write_deployment
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from shared.bus import SERVICES  # noqa: E402
-from shared.zenoh_access import write_deployment  # noqa: E402
-
 SUBNET = "10.77.0"
 HOSTS = {"a": f"{SUBNET}.1", "b": f"{SUBNET}.2", "c": f"{SUBNET}.3"}
 SERVICE_HOSTS = ("a", "b")
