@@ -121,43 +121,40 @@ class Hosts:
     model: Path
     show: bool = False
     processes: dict[str, subprocess.Popen] = field(default_factory=dict)
-    commands: dict[str, list[str]] = field(default_factory=dict)
     _files: list[IO] = field(default_factory=list)
 
-    def start(self, name: str, host: str, role: str, args: list[str], env: dict[str, str]) -> None:
-        environment = {
-            "LSR_ZENOH_CONFIG": str(self.access / f"{role}.json5"),
-            "LSR_ZENOH_CONNECT": f"tcp/127.0.0.1:{ZENOH_PORT}",  # the host's own router
-            **env,
-        }
-        command = ["env", *(f"{k}={v}" for k, v in environment.items()), "lsr", *args]
-        self.commands[name] = [f"# host {host}", " ".join(command)]
+    def start(self, name: str, host: str, role: str, args: list[str]) -> None:
+        """`lsr ARGS` in `host`, with its role's credentials, on the host's own router."""
+        env = [
+            f"LSR_ZENOH_CONFIG={self.access / f'{role}.json5'}",
+            f"LSR_ZENOH_CONNECT=tcp/127.0.0.1:{ZENOH_PORT}",
+        ]
         if self.show:
-            print(f"[{host}] {' '.join(command)}", flush=True)
+            print(f"[host {host}] {' '.join([*env, 'lsr', *args])}", file=sys.stderr, flush=True)
         out = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115
         self._files.append(out)
+        lsr = str(Path(sys.executable).parent / "lsr")
         self.processes[name] = subprocess.Popen(
-            ["ip", "netns", "exec", self.network.ns(host), *command[:-len(args) - 1],
-             str(ROOT / ".venv" / "bin" / "lsr"), *args],
+            ["ip", "netns", "exec", self.network.ns(host), "env", *env, lsr, *args],
             stdout=out,
             stderr=subprocess.STDOUT,
             env={**os.environ, "PYTHONUNBUFFERED": "1", "MUJOCO_GL": "egl"},
             cwd=ROOT,
-        )  # fmt: skip
+        )
 
     def router(self, host: str) -> None:
         listen = [f"tls/{HOSTS[host]}:{ZENOH_PORT}", f"tcp/127.0.0.1:{ZENOH_PORT}"]
         peers = [f"tls/{HOSTS[h]}:{ZENOH_PORT}" for h in HOSTS if h < host]
         args = ["router", "--listen", *listen] + (["--connect", *peers] if peers else [])
-        self.start(f"router-{host}", host, "router", args, {})
+        self.start(f"router-{host}", host, "router", args)
 
     def service(self, host: str, service: str) -> None:
         args = ["serve", service, "--model", str(self.model), "--instance", f"{host}-{service}"]
-        self.start(f"{service}-{host}", host, service, args, {})
+        self.start(f"{service}-{host}", host, service, args)
 
     def gateway(self, host: str) -> None:
         args = ["serve", "gateway", "--host", HOSTS[host], "--port", str(GATEWAY_PORT)]
-        self.start(f"gateway-{host}", host, "gateway", args, {})
+        self.start(f"gateway-{host}", host, "gateway", args)
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         process = self.processes.pop(name)
@@ -411,8 +408,6 @@ def run(args: argparse.Namespace) -> int:
             shutil.rmtree(work / "zenoh", ignore_errors=True)
     report["passed"] = bool(checks) and all(checks.values())
     print(json.dumps(report))
-    if args.show_commands:
-        print("\n".join(line for c in hosts.commands.values() for line in c), file=sys.stderr)
     return 0 if report["passed"] else 1
 
 

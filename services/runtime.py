@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -18,7 +17,15 @@ import zenoh
 from services.encoder.checkpoint import WEIGHTS, read_vae_config
 from services.planner.versions import roadmap_dir
 from shared.appearance import CLEAN, trained_appearance
-from shared.bus import Operation, Server, close_quietly, new_instance_id, open_session, service_key
+from shared.bus import (
+    Operation,
+    Server,
+    close_quietly,
+    new_instance_id,
+    open_session,
+    service_key,
+    wait_for_stop_signal,
+)
 from shared.checkpoint import MANIFEST, CheckpointError, verify, weights_file
 from shared.messages import InfoReply
 from shared.settings import MODEL_PARTS, Settings
@@ -147,11 +154,3 @@ def _info(context: ServiceContext, started: float, _: bytes) -> InfoReply:
         uptime_s=round(time.monotonic() - started, 3),
         roadmap_version=context.status.get("roadmap_version"),
     )
-
-
-def wait_for_stop_signal() -> None:
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    while not stop.wait(0.5):
-        pass

@@ -10,8 +10,15 @@ from pathlib import Path
 
 import zenoh
 
-from services.runtime import run_service, wait_for_stop_signal
-from shared.bus import SERVICES, BusConfig, close_quietly, host_id, instances, open_session
+from shared.bus import (
+    SERVICES,
+    BusConfig,
+    close_quietly,
+    host_id,
+    instances,
+    open_session,
+    wait_for_stop_signal,
+)
 from shared.settings import Settings
 
 
@@ -19,6 +26,8 @@ def serve_service(service: str, settings: Settings, models: Sequence[Path] = ())
     """One process of `service` for the model folders given (default: LSR_MODEL_DIR)."""
     if service not in SERVICES:
         raise ValueError(f"unknown service {service!r}; the services are {list(SERVICES)}")
+    from services.runtime import run_service  # torch: not for the router and the gateway
+
     module = importlib.import_module(f"services.{service}.service")
     return run_service(service, module.setup, settings, models)
 

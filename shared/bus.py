@@ -15,6 +15,7 @@ import json
 import logging
 import os
 import queue
+import signal
 import socket
 import threading
 import time
@@ -145,6 +146,15 @@ def close_quietly(session: zenoh.Session, timeout_s: float = 3.0) -> None:
     closer = threading.Thread(target=session.close, daemon=True)
     closer.start()
     closer.join(timeout_s)
+
+
+def wait_for_stop_signal() -> None:
+    """Block until SIGINT or SIGTERM: a long-running process's main thread."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
 
 
 class ServiceUnavailable(RuntimeError):
