@@ -378,6 +378,9 @@ def run(args: argparse.Namespace) -> int:
         marks.append(("", float("inf")))
         phases = {name: (at, marks[i + 1][1]) for i, (name, at) in enumerate(marks[:-1])}
         report["all"] = summary(load.lines)
+        # Queries the mesh ended unanswered, which the robot client asked again (its log).
+        log_text = (work / "logs" / "load.log").read_text()
+        report["all"]["asked_again"] = log_text.count("asking again")
         report["phases"] = {name: summary(load.between(*span)) for name, span in phases.items()}
         report["not_ok"] = [
             {"phase": name, "after_s": round(r["t"] - start, 2), **r}
