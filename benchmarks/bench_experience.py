@@ -82,7 +82,7 @@ def run_explore(args: argparse.Namespace) -> dict[str, Any]:
     spent, seed = 0, args.seed
     while spent < args.budget and rows[-1]["all"] < args.stop_at:
         step = min(args.step, args.budget - spent)
-        cfg = ExploreConfig(actions=step, seed=seed)
+        cfg = ExploreConfig(actions=step, seed=seed, looks=args.looks)
         report = explore(model, cfg, experience, args.data)
         spent, seed = spent + step, seed + 1
         growth = report["growth"]
@@ -179,6 +179,7 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=1000, help="Table I test pairs")
     parser.add_argument("--budget", type=int, default=2000)
     parser.add_argument("--step", type=int, default=250)
+    parser.add_argument("--looks", type=int, default=0, help="explore: looks after each action")
     parser.add_argument("--stop-at", type=float, default=101.0, help="stop once All reaches it")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--closed-loop", type=int, default=0, help="closed-loop tasks at the end")

@@ -33,7 +33,7 @@ STATES = {
 
 def memory_kib(pid: int) -> tuple[int, int]:
     """(RSS, PSS) of one process, in KiB."""
-    fields = {}
+    fields: dict[str, int] = {}
     for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines()[1:]:
         name, value = line.split(":", 1)
         fields[name] = int(value.split()[0])
@@ -61,6 +61,8 @@ def measure(per_task: bool) -> dict:
                 start, goal = STATES[task]
                 body = {"task": task, "start": {"state": start}, "goal": {"state": goal}}
                 planned[task] = http.post("/plan", json=body).status_code
+            if set(planned.values()) != {200}:
+                raise RuntimeError(f"a plan failed: {planned}")
             per_process = {n: memory_kib(p.pid) for n, p in stack.processes.items()}
             total_s = time.monotonic() - started
     return {

@@ -87,7 +87,8 @@ class RobotPlanner:
         """The plan id of a request. A query that ends unanswered before the timeout (the mesh
         dropped it while routes changed, or no gateway was reachable yet) is asked again."""
         deadline = time.monotonic() + self.timeout_s
-        while (left := deadline - time.monotonic()) > 0.05:
+        pause = 0.05
+        while (left := deadline - time.monotonic()) > pause:
             replies = self.session.get(
                 API_PLAN_KEY,
                 payload=json.dumps(body),
@@ -104,8 +105,9 @@ class RobotPlanner:
                         raise ServiceUnavailable("planning", str(error.get("detail")))
                     raise RuntimeError(f"plan request refused: {error}")
                 return json.loads(reply.ok.payload.to_bytes())["plan_id"]
-            log.warning("no answer on %s; asking again", API_PLAN_KEY)
-            time.sleep(0.05)
+            log.warning("no answer on %s; asking again in %.2f s", API_PLAN_KEY, pause)
+            time.sleep(pause)
+            pause = min(2 * pause, 1.0)  # nobody to route to yet: do not spin
         raise ServiceUnavailable("gateway", f"no answer on {API_PLAN_KEY}")
 
     def _published(self, plan_id: str) -> dict[str, Any]:

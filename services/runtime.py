@@ -131,7 +131,7 @@ def run_service(service: str, setup: Setup, settings: Settings, models: Sequence
             server.serve(service_key(service, model.task, operation), handler)
         # Health answers come from every instance (the gateway lists them): a key each.
         info = partial(_info, context, started)
-        server.serve(service_key(service, model.task, f"info/{instance}"), info, False)
+        server.serve(service_key(service, model.task, f"info/{instance}"), info, per_instance=False)
         log.info("%s %s serving %s (model %s)", service, instance, model.task, model.model_id)
         print(f"{service} {instance} ready: task {model.task}, model {model.model_id}", flush=True)
     wait_for_stop_signal()
@@ -143,6 +143,7 @@ def run_service(service: str, setup: Setup, settings: Settings, models: Sequence
 
 
 def _info(context: ServiceContext, started: float, _: bytes) -> InfoReply:
+    """A health answer: what the gateway's /health lists for this instance and task."""
     return InfoReply(
         service=context.service,
         instance=context.instance,

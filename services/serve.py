@@ -42,7 +42,7 @@ def serve_gateway(settings: Settings) -> int:
     return 0
 
 
-def serve_router(listen: list[str], connect: list[str] = ()) -> int:
+def serve_router(listen: Sequence[str], connect: Sequence[str] = ()) -> int:
     """A zenoh router as a Python session: what zenohd does, for machines without it.
 
     It loads LSR_ZENOH_CONFIG like every process: for the router, the access-control rules and

@@ -152,11 +152,15 @@ class Stack:
     ) -> subprocess.Popen:
         """One process of `service`: for `model` (named `service-task`), or for every model
         that needs the service (named `service`)."""
-        needing = [m for m in self.config.models if service in model_services(m)]
-        models = [model] if model else needing
+        models = [model] if model else self.models_needing(service)
+        if not models:
+            raise ValueError(f"no model folder of this stack needs a {service}")
         name = name or (f"{service}-{model_task(model)}" if model else service)
         args = ["serve", service, *(a for m in models for a in ("--model", str(m)))]
         return self._spawn(name, args, service)
+
+    def models_needing(self, service: str) -> list[Path]:
+        return [m for m in self.config.models if service in model_services(m)]
 
     def start_gateway(self) -> None:
         args = ["serve", "gateway", "--host", self.config.host, "--port", str(self.config.port)]
@@ -171,7 +175,7 @@ class Stack:
                     self.start_service(service, model=model)
         else:
             for service in SERVICES:
-                if any(service in model_services(m) for m in self.config.models):
+                if self.models_needing(service):
                     self.start_service(service)
         self.start_gateway()
 

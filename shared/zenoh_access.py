@@ -23,7 +23,10 @@ serve `lsr/planner/...` (an impostor's plans would reach robots) nor ask anythin
 writes `router.json5` (with the dictionary's path as the router will see it), `users.txt`
 (user:password lines, random passwords) and one `{role}.json5` per process: give each process
 its own as LSR_ZENOH_CONFIG (`lsr router` too, with `router.json5`: every router of a mesh takes
-the same one). Every file holds secrets and is written readable by its owner only.
+the same one). Every file but the certificates (`ca.pem`, `router.pem`) holds secrets and is
+written readable by its owner only. A mesh under these rules needs TLS (`--tls-hosts`): a router
+knows the routers it dials only by their certificate. The router's file (its password) and
+`router.key` let their holder carry everything on `lsr/**`: keep them on router hosts only.
 """
 
 from __future__ import annotations
@@ -227,8 +230,9 @@ def write_deployment(
     router: dict = {
         "transport": {
             "auth": {"usrpwd": {**usrpwd, "dictionary_file": dictionary}},
-            # A router whose link is cut is given up after this, not zenoh's 10 s, so that
-            # the mesh routes around a lost host while requests still have time.
+            # A link that goes silent (a router's or a client's) is given up after this, not
+            # zenoh's 10 s, so that the mesh routes around a lost host while requests still
+            # have time.
             "link": {"tx": {"lease": ROUTER_LEASE_MS, "keep_alive": 4}},
         },
         "access_control": access_control(robots),

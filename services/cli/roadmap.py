@@ -62,7 +62,11 @@ def cmd_explore(args: argparse.Namespace) -> int:
 
     single_thread_torch()
     cfg = ExploreConfig(
-        actions=args.actions, seed=args.seed, grow_every=args.grow_every, chain=args.chain
+        actions=args.actions,
+        seed=args.seed,
+        grow_every=args.grow_every,
+        chain=args.chain,
+        looks=args.looks,
     )
     experience = args.experience or args.model / "experience" / "explore"
     print(json.dumps(explore(args.model, cfg, experience, args.data)))
@@ -142,5 +146,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     explore.add_argument("--seed", type=int, default=0)
     explore.add_argument("--grow-every", type=int, default=100)
     explore.add_argument("--chain", type=int, default=3, help="actions in a row from one start")
+    explore.add_argument(
+        "--looks",
+        type=int,
+        default=0,
+        help="looks again after each executed action, recorded as no-action pairs (new states "
+        "get enough images to become nodes in one visit)",
+    )
     explore.add_argument("--data", type=Path, help="as for lsr roadmap grow")
     explore.set_defaults(handler=cmd_explore)

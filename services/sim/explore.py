@@ -44,10 +44,14 @@ class ExploreConfig:
     seen_share: float = 0.1
     spec_share: float = 0.05
     chain: int = 3  # actions in a row from one start before choosing another
+    # Looks again (the scene perturbed slightly, as a camera sees it again) after each executed
+    # action, recorded as no-action pairs: a state reached for the first time then has enough
+    # images to found a node (growth's NEW_NODE_MIN) in one visit.
+    looks: int = 0
 
     def __post_init__(self) -> None:
-        if self.actions < 1 or self.grow_every < 1 or self.chain < 1:
-            raise ValueError("actions, grow_every and chain must be at least 1")
+        if self.actions < 1 or self.grow_every < 1 or self.chain < 1 or self.looks < 0:
+            raise ValueError("actions, grow_every and chain must be at least 1, looks >= 0")
         shares = (self.seen_share, self.spec_share)
         if min(shares) < 0 or sum(shares) > 1:
             raise ValueError(
@@ -191,6 +195,12 @@ def explore(
                     # (an identical look after a refusal shows nothing new: not recorded)
                     rows.append((image, action, after, state, after_state))
                     record(*rows[-1])
+                for _ in range(cfg.looks if action is not None else 0):
+                    after_state = world.perturb(rng)
+                    again = world.render()
+                    rows.append((after, None, again, after_state, after_state))
+                    record(*rows[-1])
+                    after = again
                 state = after_state
                 if tried >= grown_at + cfg.grow_every and rows:
                     grown_at = tried

@@ -105,6 +105,20 @@ def test_exploration_spends_its_budget_in_the_simulator_and_grows_a_version(mode
             assert start == after
 
 
+def test_exploration_looks_again_after_each_executed_action(model, tmp_path):
+    cfg = ExploreConfig(actions=12, seed=2, grow_every=6, chain=2, seen_share=0.8, looks=2)
+    explore(model, cfg, tmp_path / "exp", progress=False)
+    data = load_dataset(tmp_path / "exp")
+    moved = np.flatnonzero(data.a == 1)
+    assert len(moved) > 0
+    for i in moved:  # each executed action is followed by two looks at the state it reached
+        if i + 2 < len(data):
+            assert not data.a[i + 1] and not data.a[i + 2]
+            assert (data.state1[i + 1] == data.state2[i]).all()
+            assert (data.state2[i + 2] == data.state2[i]).all()
+            assert not np.array_equal(data.image1[i + 1], data.image2[i + 1])
+
+
 def test_an_illegal_action_is_not_applied(small_world):
     task = small_world.task
     state = task.sample_state(np.random.default_rng(0))
