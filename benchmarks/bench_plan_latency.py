@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -97,6 +98,33 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
     }
 
 
+def in_process_throughput(model: Path, bodies: list[dict], requests: int) -> dict[str, float]:
+    """What the same cores do in one process: the gateway's work for `requests` requests, by 8
+    threads over one planner (torch on one thread each, as a threaded server would run it) and
+    by one thread with torch on every core; requests per second of each."""
+    planner = ActionPlanner.from_model_dir(model)
+    pngs = PngCache()
+
+    def one(body: dict) -> None:
+        start = decode_b64_image("start.image", body["start"]["image"], planner.image_size)
+        goal = decode_b64_image("goal.image", body["goal"]["image"], planner.image_size)
+        plans = planner.plan(start, goal, body["max_plans"])
+        task = planner.task
+        json.dumps([{"images": [pngs.b64(i) for i in p.images], **p.to_json(task)} for p in plans])
+
+    for body in bodies:  # warm the caches, as the stack's first pass does
+        one(body)
+    rates = {}
+    for name, threads, workers in (("threads_8", 1, 8), ("serial_all_cores", 0, 1)):
+        torch.set_num_threads(threads or os.cpu_count() or 1)
+        started = time.perf_counter()
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(one, (bodies[i % len(bodies)] for i in range(requests))))
+        rates[name] = round(requests / (time.perf_counter() - started), 1)
+    torch.set_num_threads(1)
+    return rates
+
+
 def idle_penalty(model: Path, bodies: list[dict], idle_s: float = 0.012) -> dict[str, dict]:
     """The encoder's forward pass back to back, and after idling as each service does at
     concurrency 1 (it waits ~12 ms for the other stages): on a shared VM, idling costs speed."""
@@ -114,6 +142,16 @@ def idle_penalty(model: Path, bodies: list[dict], idle_s: float = 0.012) -> dict
             seconds.append(time.perf_counter() - t0)
         timings[name] = percentiles(seconds[20:])
     return timings
+
+
+def cpu_seconds(stack: Stack) -> dict[str, float]:
+    """User + system CPU seconds of each process of the stack so far (Linux /proc)."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    used = {}
+    for name, process in stack.processes.items():
+        fields = Path(f"/proc/{process.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        used[name] = (int(fields[11]) + int(fields[12])) / ticks  # utime, stime
+    return used
 
 
 def server_timing(header: str) -> dict[str, float]:
@@ -192,10 +230,22 @@ def main() -> None:
             print(f"stack healthy in {stack.wait_healthy(90):.1f} s", flush=True)
             one = through_stack(config.url, bodies, 200, 1)
             print("stack, concurrency 1:", json.dumps(one), flush=True)
+            cpu = cpu_seconds(stack)
             eight = through_stack(config.url, bodies, args.requests, 8)
+            used = cpu_seconds(stack)
+            eight["cpu_ms_per_request"] = {
+                name: round((used[name] - cpu[name]) * 1e3 / args.requests, 2) for name in used
+            }
             print("stack, concurrency 8:", json.dumps(eight), flush=True)
     after = in_process(args.model, bodies, repeats=200)
     print("in process (after):", json.dumps(after), flush=True)
+    rate = in_process_throughput(args.model, bodies, args.requests)
+    best = max(rate.values())
+    print(
+        f"in process, requests/s: {json.dumps(rate)}; the stack at concurrency 8 reaches "
+        f"{eight['requests_per_s'] / best:.0%} of the better",
+        flush=True,
+    )
     ratios = [one["p50_ms"] / t["with_image_codecs"]["p50_ms"] for t in (before, after)]
     print(
         "p50 through the stack / in process (same work incl. image codecs): "
@@ -206,6 +256,8 @@ def main() -> None:
         "encoder_idle_penalty": idle,
         "stack_c1": one,
         "stack_c8": eight,
+        "in_process_requests_per_s": rate,
+        "c8_share_of_in_process": round(eight["requests_per_s"] / best, 3),
     }
     print(json.dumps({**summary, "p50_ratios": [round(r, 2) for r in ratios]}))
 
