@@ -40,12 +40,11 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from services.stack import gateway_health
 from shared.bus import SERVICES
 from shared.zenoh_access import write_deployment
 
@@ -182,15 +181,7 @@ class Hosts:
 
 def health(host: str, timeout_s: float = 3.0) -> dict[str, Any]:
     """Gateway `host`'s /health (from this machine's end of the bridge); {} when unreachable."""
-    try:
-        with urllib.request.urlopen(
-            f"http://{HOSTS[host]}:{GATEWAY_PORT}/health", timeout=timeout_s
-        ) as reply:
-            return json.loads(reply.read())
-    except urllib.error.HTTPError as exc:
-        return json.loads(exc.read() or b"{}")
-    except (OSError, ValueError):
-        return {}
+    return gateway_health(f"http://{HOSTS[host]}:{GATEWAY_PORT}", timeout_s)[1]
 
 
 def instances(report: dict[str, Any]) -> set[str]:

@@ -189,13 +189,7 @@ class Stack:
             time.sleep(0.1)
 
     def health(self, timeout_s: float = 5.0) -> tuple[int, dict]:
-        try:
-            with urllib.request.urlopen(f"{self.config.url}/health", timeout=timeout_s) as r:
-                return r.status, json.loads(r.read())
-        except urllib.error.HTTPError as exc:
-            return exc.code, json.loads(exc.read() or b"{}")
-        except (urllib.error.URLError, ConnectionError, TimeoutError):
-            return 0, {}
+        return gateway_health(self.config.url, timeout_s)
 
     def wait_healthy(
         self, timeout_s: float = 60.0, interrupted: Callable[[], bool] = lambda: False
@@ -242,6 +236,17 @@ class Stack:
 
     def __exit__(self, *exc: object) -> None:
         self.stop_all()
+
+
+def gateway_health(url: str, timeout_s: float = 5.0) -> tuple[int, dict]:
+    """(status, report) of a gateway's /health; (0, {}) when nothing answers."""
+    try:
+        with urllib.request.urlopen(f"{url}/health", timeout=timeout_s) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read() or b"{}")
+    except (urllib.error.URLError, ConnectionError, TimeoutError):
+        return 0, {}
 
 
 def free_port() -> int:
