@@ -3,9 +3,11 @@
   explore  A copy of the model; Table I on unseen test pairs; then `lsr explore` in steps of
            --step actions up to --budget, Table I and the roadmap's components after each;
            with --closed-loop N, N closed-loop tasks in simulation at the end.
-  loop     A copy of the model; --loop-pairs ordinary closed-loop tasks in simulation
-           recording what they did; the roadmap grown from it; Table I (detour ratio) before
-           and after.
+  loop     A copy of the model; rounds of --loop-pairs ordinary closed-loop tasks in
+           simulation recording what they did, the roadmap grown after each round, until
+           --budget actions are spent; with --shortcuts P a share P of the steps tries the
+           APN's action straight to the plan's second next node; Table I (detour ratio) after
+           every round.
   timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
 
 Each mode prints one JSON line and writes OUT/results.json; explore plots All and the
@@ -49,10 +51,16 @@ def table1(model: Path, test: Path, pairs: int) -> dict[str, Any]:
     }
 
 
-def closed_loop(model: Path, pairs: int, experience: Path | None = None) -> dict[str, Any]:
+def closed_loop(
+    model: Path,
+    pairs: int,
+    experience: Path | None = None,
+    seed: int = 1,
+    shortcuts: float = 0.0,
+) -> dict[str, Any]:
     from services.data.experience import ExperienceLog, Recorder
     from services.planner.action_plans import ActionPlanner
-    from services.sim.closed_loop import evaluate_system
+    from services.sim.closed_loop import TryShortcuts, evaluate_system
     from services.sim.worlds import make_world
 
     planner = ActionPlanner.from_model_dir(model)
@@ -60,9 +68,13 @@ def closed_loop(model: Path, pairs: int, experience: Path | None = None) -> dict
     record = None
     if experience is not None:
         record = Recorder(ExperienceLog(experience, task.spec, planner.image_size), task)
+    trying = TryShortcuts(planner, shortcuts, seed)
     with make_world(task.name, planner.image_size) as world:
-        result = evaluate_system(planner, world, task, pairs, seed=1, record=record)
-    return {k: result[k] for k in ("success", "actions_executed", "steps_over_optimal", "outcomes")}
+        result = evaluate_system(
+            trying, world, task, pairs, seed=seed, record=record, replan_after_refusal=shortcuts > 0
+        )
+    kept = ("success", "actions_executed", "illegal_actions", "steps_over_optimal", "outcomes")
+    return {k: result[k] for k in kept} | {"shortcuts_tried": len(trying.tried)}
 
 
 def copy_model(source: Path, out: Path) -> Path:
@@ -106,17 +118,25 @@ def run_explore(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_loop(args: argparse.Namespace) -> dict[str, Any]:
+    """Rounds of --loop-pairs ordinary tasks, each recording its experience and then growing
+    the roadmap from it (as a deployment grows its model between shifts), until --budget
+    actions (legal or refused) are spent."""
     model = copy_model(args.model, args.out)
     experience = args.out / "experience"
     shutil.rmtree(experience, ignore_errors=True)
-    before = table1(model, args.test, args.pairs)
-    print(json.dumps({"before": before}), flush=True)
-    loop = closed_loop(model, args.loop_pairs, experience)
-    if not has_experience(experience):  # no task got as far as one action
-        return {"before": before, "closed_loop": loop, "growth": None}
-    growth = grow_model(model, [experience], args.data)
-    after = table1(model, args.test, args.pairs)
-    return {"before": before, "closed_loop": loop, "growth": growth, "after": after}
+    rows = [{"actions": 0, **table1(model, args.test, args.pairs)}]
+    print(json.dumps(rows[-1]), flush=True)
+    spent, seed = 0, args.seed + 1
+    while spent < args.budget:
+        loop = closed_loop(model, args.loop_pairs, experience, seed, args.shortcuts)
+        spent, seed = spent + loop["actions_executed"] + loop["illegal_actions"], seed + 1
+        row: dict[str, Any] = {"actions": spent, "closed_loop": loop}
+        if has_experience(experience):
+            growth = grow_model(model, [experience], args.data)
+            row |= {k: growth[k] for k in ("new_nodes", "new_edges", "held_for_review")}
+        rows.append(row | table1(model, args.test, args.pairs))
+        print(json.dumps(rows[-1]), flush=True)
+    return {"rows": rows}
 
 
 def run_timing(args: argparse.Namespace) -> dict[str, Any]:
@@ -183,7 +203,10 @@ def main() -> None:
     parser.add_argument("--stop-at", type=float, default=101.0, help="stop once All reaches it")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--closed-loop", type=int, default=0, help="closed-loop tasks at the end")
-    parser.add_argument("--loop-pairs", type=int, default=100, help="loop mode: tasks to run")
+    parser.add_argument("--loop-pairs", type=int, default=100, help="loop mode: tasks a round")
+    parser.add_argument(
+        "--shortcuts", type=float, default=0.0, help="loop mode: share of steps that skip a node"
+    )
     parser.add_argument("--experience", type=Path, help="timing mode: tuples to grow from")
     parser.add_argument("--new", type=int, default=1000, help="timing mode: tuples to grow")
     parser.add_argument(

@@ -81,6 +81,22 @@ class ActionPlanner:
             )
         return plans
 
+    def skip_first(self, plan: VisualActionPlan) -> VisualActionPlan:
+        """`plan` with its first two steps as one: the APN's action from the first node straight
+        to the third. The roadmap has no edge between them (else the path were shorter), so
+        executing it shows whether the data only missed that move (issue 22: shortcuts)."""
+        if len(plan.nodes) < 3:
+            raise ValueError("a plan needs two steps to skip one")
+        z = self.planner.roadmap.nodes[[plan.nodes[0], plan.nodes[2]]].astype(np.float32)
+        arrays, confidences = propose(self.apn, z[:1], z[1:])
+        return VisualActionPlan(
+            nodes=[plan.nodes[0], *plan.nodes[2:]],
+            images=[plan.images[0], *plan.images[2:]] if plan.images else [],
+            actions=[self.task.array_to_action(arrays[0]), *plan.actions[2:]],
+            confidences=[float(confidences[0]), *plan.confidences[2:]],
+            supports=[0, *plan.supports[2:]],
+        )
+
 
 def edge_actions(
     task: Task, roadmap: Roadmap, apn: APN, node_states: list[Any], show: int = 5

@@ -27,6 +27,41 @@ class Planner(Protocol):
         ...
 
 
+class ShortcutPlanner(Planner, Protocol):
+    def skip_first(self, plan: VisualActionPlan) -> VisualActionPlan:
+        """`plan` with its first two steps as one action (ActionPlanner.skip_first)."""
+        ...
+
+
+class TryShortcuts:
+    """Plans as `planner` does, but a `share` of the steps with two or more to go try the
+    APN's action from here straight to the plan's second next node, each pair of nodes once.
+    Ordinary tasks re-walk the roadmap's own edges and so teach it nothing new; a tried
+    shortcut either shows a move the data never did (a new edge once grown) or is refused or
+    lands elsewhere, and the closed loop re-plans from what it sees."""
+
+    def __init__(self, planner: ShortcutPlanner, share: float, seed: int = 0) -> None:
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"share must lie in [0, 1], got {share}")
+        self.planner = planner
+        self.share = share
+        self.rng = np.random.default_rng(seed)
+        self.tried: set[tuple[int, int]] = set()
+
+    def plan(
+        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
+    ) -> list[VisualActionPlan]:
+        plans = self.planner.plan(start, goal, max_plans, expect)
+        if not plans or len(most_confident(plans).actions) < 2:
+            return plans
+        plan = most_confident(plans)
+        pair = (plan.nodes[0], plan.nodes[2])
+        if pair in self.tried or self.rng.random() >= self.share:
+            return plans
+        self.tried.add(pair)
+        return [self.planner.skip_first(plan)]
+
+
 @dataclass
 class Episode:
     success: bool
@@ -56,6 +91,7 @@ def run_episode(
     max_plans: int = 8,
     on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
     record: Record | None = None,
+    replan_after_refusal: bool = False,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 
@@ -63,7 +99,8 @@ def run_episode(
     recorded after it (progress for robots; a camera-like world draws each image once).
     `record` gets every executed action as experience (the image planned from, the action,
     the image after), a refused one and each fresh look at an unchanged scene as no-action
-    pairs.
+    pairs. A refused action ends the episode (re-planning would repeat it) unless
+    `replan_after_refusal`, for a planner that does not repeat itself (TryShortcuts).
     """
     if goal_image is None:
         if goal is None:
@@ -106,6 +143,9 @@ def run_episode(
             episode.reason = "illegal_action"  # the world is unchanged: re-planning repeats it
             if record is not None:
                 record(seen, None, world.render(), state, state)
+            if replan_after_refusal:
+                episode.reason = "max_steps"  # unless it ends otherwise
+                continue
             break
         except WorldError as exc:
             episode.reason = f"physics: {exc}"
@@ -161,6 +201,7 @@ def evaluate_system(
     progress: bool = True,
     judge: PlanJudge | None = None,
     record: Recorder | None = None,
+    replan_after_refusal: bool = False,
 ) -> dict[str, Any]:
     """Random start/goal state pairs run closed loop; success = the simulator reaches the goal.
 
@@ -179,7 +220,10 @@ def evaluate_system(
         goal = task.sample_state(rng)
         while goal == start:
             goal = task.sample_state(rng)
-        episode = run_episode(planner, world, start, goal, rng, max_steps=max_steps, record=record)
+        episode = run_episode(
+            planner, world, start, goal, rng, max_steps=max_steps, record=record,
+            replan_after_refusal=replan_after_refusal,
+        )  # fmt: skip
         executed += len(episode.actions)
         illegal += episode.illegal_actions
         reasons[episode.reason] = reasons.get(episode.reason, 0) + 1
@@ -204,6 +248,7 @@ def evaluate_system(
         "steps_over_optimal": steps_on_success / optimal_on_success if optimal_on_success else None,
         "legal_actions": 100.0 * executed / attempted if attempted else None,
         "actions_executed": executed,
+        "illegal_actions": illegal,
         "outcomes": dict(sorted(reasons.items())),
         "max_steps": max_steps,
         "seed": seed,

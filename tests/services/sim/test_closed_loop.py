@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from services.planner.action_plans import ActionPlanner
-from services.sim.closed_loop import evaluate_system, optimal_moves, run_episode
+from services.sim.closed_loop import TryShortcuts, evaluate_system, optimal_moves, run_episode
 from shared.plans import Match, UnknownImageError, VisualActionPlan
-from shared.tasks.base import WorldError
+from shared.tasks.base import IllegalActionError, WorldError
 from shared.tasks.box_stacking import Cell, Move
 
 SHIPPED = Path(__file__).resolve().parents[3] / "models" / "box_stacking"
@@ -193,3 +193,86 @@ def test_a_world_left_in_no_state_ends_the_episode_without_a_crash(world):
                           np.random.default_rng(0))  # fmt: skip
     assert episode.reason.startswith("physics:") and episode.final_state is None
     assert not episode.success
+
+
+class TwoStepPlanner:
+    """Always two steps to go, from a new node each call; its shortcut is the action 'skip'."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def plan(self, start, goal, max_plans=8, expect=None):
+        self.calls += 1
+        nodes = [self.calls, 1000 + self.calls, 2000]
+        return [VisualActionPlan(nodes, [start, start, goal], ["a", "b"], [0.9, 0.9], [1, 1])]
+
+    def skip_first(self, plan):
+        return VisualActionPlan(plan.nodes[::2], plan.images[::2], ["skip"], [0.5], [0])
+
+
+def test_try_shortcuts_skips_a_share_of_the_steps_with_two_to_go_each_pair_once():
+    image = np.zeros((8, 8, 3), np.uint8)
+    never, always = TryShortcuts(TwoStepPlanner(), 0.0), TryShortcuts(TwoStepPlanner(), 1.0)
+    assert never.plan(image, image)[0].actions == ["a", "b"] and not never.tried
+    assert always.plan(image, image)[0].actions == ["skip"] and always.tried == {(1, 2000)}
+    half = TryShortcuts(TwoStepPlanner(), 0.5, seed=3)
+    tried = sum(half.plan(image, image)[0].actions == ["skip"] for _ in range(400))
+    assert tried == len(half.tried) and 150 < tried < 250
+    again = TryShortcuts(FixedPlanner(TwoStepPlanner().plan(image, image)), 1.0)
+    again.planner.skip_first = TwoStepPlanner().skip_first
+    assert [again.plan(image, image)[0].actions for _ in range(2)] == [["skip"], ["a", "b"]]
+    one_step = FixedPlanner([VisualActionPlan([0, 1], [image, image], ["a"], [0.9], [1])])
+    one_step.skip_first = TwoStepPlanner().skip_first
+    assert TryShortcuts(one_step, 1.0).plan(image, image)[0].actions == ["a"]  # nothing to skip
+    with pytest.raises(ValueError, match="share"):
+        TryShortcuts(TwoStepPlanner(), 1.5)
+
+
+def test_a_refused_action_ends_the_episode_unless_the_planner_may_change_its_mind(world):
+    start = state(world, [["red", "green"], ["blue"], ["yellow"]])
+    goal = state(world, [["red"], ["blue"], ["yellow", "green"]])
+    illegal = Move(Cell(0, 0), Cell(1, 1))  # red from under green
+    with pytest.raises(IllegalActionError):
+        world.task.apply(start, illegal)
+    oracle = OraclePlanner(world, goal)
+
+    class RefusedFirst:
+        def __init__(self):
+            self.first = True
+
+        def plan(self, image, goal_image, max_plans=8, expect=None):
+            if self.first:
+                self.first = False
+                return [VisualActionPlan([0, 1], [image, goal_image], [illegal], [1.0], [1])]
+            return oracle.plan(image, goal_image)
+
+    rng = np.random.default_rng(0)
+    stopped = run_episode(RefusedFirst(), world, start, goal, rng)
+    assert stopped.reason == "illegal_action" and not stopped.success
+    went_on = run_episode(RefusedFirst(), world, start, goal, rng, replan_after_refusal=True)
+    assert went_on.success and went_on.illegal_actions == 1 and len(went_on.actions) == 1
+
+
+@pytest.mark.skipif(not (SHIPPED / "apn").is_dir(), reason="shipped model not present")
+def test_skip_first_asks_the_apn_for_the_first_node_to_the_third():
+    from services.apn.train import propose
+
+    planner = ActionPlanner.from_model_dir(SHIPPED)
+    roadmap = planner.planner.roadmap
+    path = next(p for p in (roadmap.shortest_paths(0, g, 1)[0] for g in range(1, 60)) if len(p) > 3)
+    z = roadmap.nodes[path].astype(np.float32)
+    arrays, confidences = propose(planner.apn, z[:-1], z[1:])
+    plan = VisualActionPlan(
+        path,
+        [],
+        [planner.task.array_to_action(a) for a in arrays],
+        list(confidences),
+        [5] * (len(path) - 1),
+    )
+    skipped = planner.skip_first(plan)
+    (straight,), _ = propose(planner.apn, z[:1], z[2:3])
+    assert skipped.nodes == [path[0], *path[2:]]
+    assert skipped.actions == [planner.task.array_to_action(straight), *plan.actions[2:]]
+    assert skipped.supports[0] == 0 and len(skipped.confidences) == len(skipped.actions)
+    with pytest.raises(ValueError, match="two steps"):
+        planner.skip_first(VisualActionPlan(path[:2], [], plan.actions[:1], [0.9], [1]))
