@@ -14,7 +14,11 @@ every action pair's nodes give the edges, as Algorithm 1's phase 3. Guards again
   observation, not an edge;
 - an edge whose action, executed from its node, led to an image of another state (farther
   than the same-state radius) is contradicted; one contradicted more often than its pairs
-  support it is flagged in the report (not dropped: twins make false contradictions).
+  support it is flagged in the report (not dropped: twins make false contradictions);
+- a no-action pair whose images lie in two nodes shows them to be one state (twins, which
+  Algorithm 1's phase 1 would have joined into one node; built nodes keep their ids, so the
+  roadmap records the pair and plans over the groups), unless an edge joins the two groups:
+  an action pair between them says they differ, and the link is refused.
 What the roadmap was built from (latents, reconstruction errors, actions, states) is kept beside
 it in `members.safetensors`, so growth needs no training images.
 """
@@ -116,6 +120,27 @@ def _edges(node: np.ndarray, a: np.ndarray, k: int) -> tuple[np.ndarray, np.ndar
     return np.stack([keys // k, keys % k], axis=1).astype(np.int64), weights.astype(np.int64)
 
 
+def twin_links(
+    node: np.ndarray, a: np.ndarray, edges: np.ndarray, known: np.ndarray, k: int
+) -> tuple[np.ndarray, int]:
+    """(the twin pairs (T, 2), i < j, sorted: `known` ones and those the no-action pairs show;
+    how many links were refused because an edge would join a group to itself)."""
+    n1, n2 = node[0::2], node[1::2]
+    shown = (a == 0) & (n1 >= 0) & (n2 >= 0) & (n1 != n2)
+    pairs = np.column_stack([np.minimum(n1, n2)[shown], np.maximum(n1, n2)[shown]])
+    candidates = np.unique(np.concatenate([known, pairs]).astype(np.int64), axis=0)
+    group = np.arange(k)
+    kept, refused = [], 0
+    for i, j in candidates:
+        gi, gj = group[i], group[j]
+        if gi != gj and np.isin(group[edges], (gi, gj)).all(1).any():
+            refused += 1
+            continue
+        group[group == gj] = gi
+        kept.append((i, j))
+    return np.asarray(kept, np.int64).reshape(-1, 2), refused
+
+
 def contradictions(
     task: Task, node: np.ndarray, members: Members, new: np.ndarray, radius: float, metric: str
 ) -> Counter[tuple[int, int]]:
@@ -198,6 +223,7 @@ def grow(
         node[ids] = k0 + i
     k = k0 + len(fresh)
     edges, weights = _edges(node, everything.a, k)
+    twins, twins_refused = twin_links(node, everything.a, edges, roadmap.twins, k)
 
     # Experience that contradicts an edge is flagged, not acted on: in box stacking at 500
     # tuples every edge dropped for it (contradicted more often than supported) was legal, the
@@ -240,12 +266,18 @@ def grow(
         "contradictions": int(sum(c for e, c in against.items() if e in weight_of)),
         # [i, j, contradictions, supporting pairs]: contradicted more often than supported
         "flagged_edges": flagged,
+        "twins": [len(roadmap.twins), len(twins)],
+        "twins_refused": twins_refused,
         "nodes": [k0, k],
         "edges": [len(roadmap.edges), len(edges)],
-        "components": [components(k0, roadmap.edges), components(k, edges)],
+        "components": [
+            components(k0, np.concatenate([roadmap.edges, roadmap.twins])),
+            components(k, np.concatenate([edges, twins])),
+        ],
         "seconds": time.perf_counter() - started,
     }
     stats = {**roadmap.stats, "nodes": k, "edges": len(edges), "edge_weight": int(weights.sum())}
+    stats["twins"] = len(twins)
     stats["points"] = len(node)
     stats["grown"] = [
         *roadmap.stats.get("grown", []),
@@ -262,6 +294,7 @@ def grow(
         edge_weights=weights,
         point_node=node.astype(np.int64),
         stats=stats,
+        twins=twins,
     )
     report["held"] = held - base // 2  # indices into the new tuples
     # Built nodes are known as before (recalibrating on what they let in would let the bounds

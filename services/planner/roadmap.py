@@ -26,7 +26,7 @@ from typing import Any, Literal
 import numpy as np
 from safetensors.numpy import load_file, save_file
 from scipy import sparse
-from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.csgraph import connected_components, shortest_path
 from scipy.spatial import cKDTree
 
 from services.planner.regions import (
@@ -269,8 +269,14 @@ class Roadmap:
     edge_weights: np.ndarray  # (E,) int64: supporting action pairs, each counted once
     point_node: np.ndarray  # (2N,) int64: node of z1[0], z2[0], z1[1], ...; -1 when pruned
     stats: dict[str, Any] = field(default_factory=dict)
+    # (T, 2) int64, i < j, sorted: nodes that no-action pairs show to be one state (growth's
+    # twins); paths treat each group as one node.
+    twins: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
     _adjacency: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
+    _groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(
+        default=None, init=False, repr=False
+    )
 
     def __post_init__(self) -> None:
         self._validate()
@@ -295,6 +301,7 @@ class Roadmap:
             raise RoadmapError(f"edges must have shape (E, 2), got {self.edges.shape}")
         _expect(self.edge_weights, "edge_weights", 1, np.int64, (len(self.edges),))
         _expect(self.point_node, "point_node", 1, np.int64)
+        _expect(self.twins, "twins", 2, np.int64)
         if not np.isfinite(self.nodes).all():
             raise RoadmapError("nodes must be finite")
         if (self.node_sizes < 1).any():
@@ -308,6 +315,14 @@ class Roadmap:
                 raise RoadmapError("edges must be sorted and unique")
         if (self.edge_weights < 1).any():
             raise RoadmapError("edge_weights must be >= 1")
+        if self.twins.shape[1] != 2:
+            raise RoadmapError(f"twins must have shape (T, 2), got {self.twins.shape}")
+        if len(self.twins):
+            i, j = self.twins[:, 0], self.twins[:, 1]
+            if (i < 0).any() or (j >= k).any() or (i >= j).any():
+                raise RoadmapError(f"twins must be pairs i < j of node ids in 0..{k - 1}")
+            if (np.diff(i * k + j) <= 0).any():
+                raise RoadmapError("twins must be sorted and unique")
         if len(self.point_node) and ((self.point_node < -1).any() or (self.point_node >= k).any()):
             raise RoadmapError(f"point_node must hold -1 or node ids in 0..{k - 1}")
 
@@ -330,11 +345,39 @@ class Roadmap:
         _, idx = self._tree.query(q, k=1, p=metric_p(self.config.metric))
         return int(idx) if q.ndim == 1 else np.asarray(idx, dtype=np.int64)
 
+    def _twin_groups(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(each node's group, named by its smallest node id; the edges between groups, sorted
+        and unique; their weights, summed over the edges they join), built once."""
+        if self._groups is None:
+            k = self.num_nodes
+            group = np.arange(k)
+            if len(self.twins):
+                graph = sparse.csr_matrix(
+                    (np.ones(len(self.twins)), (self.twins[:, 0], self.twins[:, 1])), shape=(k, k)
+                )
+                label = connected_components(graph, directed=False)[1]
+                first = np.full(label.max() + 1, k)
+                np.minimum.at(first, label, group)
+                group = first[label]
+            ends = np.sort(group[self.edges], axis=1)
+            keep = ends[:, 0] != ends[:, 1]
+            keys, index = np.unique(ends[keep, 0] * k + ends[keep, 1], return_inverse=True)
+            weights = np.bincount(index, self.edge_weights[keep], len(keys)).astype(np.int64)
+            self._groups = (group, np.column_stack([keys // k, keys % k]), weights)
+        return self._groups
+
+    @property
+    def twin_group(self) -> np.ndarray:
+        """Each node's twin group, named by its smallest node id (its own id without twins)."""
+        return self._twin_groups()[0]
+
     def _neighbour_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """CSR adjacency (indptr, indices), neighbours sorted ascending, built once."""
+        """CSR adjacency (indptr, indices) between twin groups, neighbours sorted ascending,
+        built once."""
         if self._adjacency is None:
-            rows = np.concatenate([self.edges[:, 0], self.edges[:, 1]])
-            cols = np.concatenate([self.edges[:, 1], self.edges[:, 0]])
+            edges = self._twin_groups()[1]
+            rows = np.concatenate([edges[:, 0], edges[:, 1]])
+            cols = np.concatenate([edges[:, 1], edges[:, 0]])
             order = np.lexsort((cols, rows))
             indptr = np.searchsorted(rows[order], np.arange(self.num_nodes + 1))
             self._adjacency = (indptr, cols[order])
@@ -350,36 +393,45 @@ class Roadmap:
         return i
 
     def neighbours(self, node: int) -> list[int]:
-        """Nodes sharing an edge with `node`, ascending."""
-        i = self._node_id(node, "node")
+        """Twin groups (by their first node) sharing an edge with `node`'s, ascending."""
+        i = self.twin_group[self._node_id(node, "node")]
         indptr, indices = self._neighbour_arrays()
         return indices[indptr[i] : indptr[i + 1]].tolist()
 
     def supports(self, path: list[int]) -> list[int]:
-        """The training action pairs behind each step of a path (its edges' weights)."""
+        """The action pairs behind each step of a path (its edges' weights, between twin
+        groups)."""
+        group, edges, weights = self._twin_groups()
         ids = np.asarray(path, dtype=np.int64)
         if len(ids) < 2:
             return []
+        if (ids < 0).any() or (ids >= self.num_nodes).any():
+            raise RoadmapError(f"path {path} takes a step that is not an edge")
+        ids = group[ids]
         lo, hi = np.minimum(ids[:-1], ids[1:]), np.maximum(ids[:-1], ids[1:])
         k = self.num_nodes
-        keys = self.edges[:, 0] * k + self.edges[:, 1]
+        keys = edges[:, 0] * k + edges[:, 1]
         at = np.searchsorted(keys, lo * k + hi)  # edges are sorted and unique
         if (at >= len(keys)).any() or (keys[np.minimum(at, len(keys) - 1)] != lo * k + hi).any():
             raise RoadmapError(f"path {path} takes a step that is not an edge")
-        return self.edge_weights[at].tolist()
+        return weights[at].tolist()
 
     def shortest_paths(self, src: int, dst: int, max_paths: int = 16) -> list[list[int]]:
         """All shortest paths by hop count from src to dst, at most max_paths of them.
 
         Paths come in lexicographic order of their node ids, so the same roadmap always gives
-        the same plans. [] when dst cannot be reached; [[src]] when src == dst.
+        the same plans. [] when dst cannot be reached; [[src]] when src == dst or its twin.
+        Twins count as one node: a path leaves from src and arrives at dst themselves, and
+        passes each group between by its first node.
         """
         s = self._node_id(src, "src")
         t = self._node_id(dst, "dst")
         if isinstance(max_paths, bool) or not isinstance(max_paths, int) or max_paths < 1:
             raise RoadmapError(f"max_paths must be an integer >= 1, got {max_paths!r}")
+        src_node, dst_node = s, t
+        s, t = (int(g) for g in self.twin_group[[s, t]])
         if s == t:
-            return [[s]]
+            return [[src_node]]
         indptr, indices = self._neighbour_arrays()
         graph = sparse.csr_matrix(
             (np.ones(len(indices)), indices, indptr), shape=(self.num_nodes, self.num_nodes)
@@ -404,7 +456,7 @@ class Roadmap:
                 stack.pop()
                 path.pop()
             elif v == t:
-                paths.append([*path, v])
+                paths.append([src_node, *path[1:], dst_node])
                 if len(paths) == max_paths:
                     break
             else:
@@ -416,7 +468,8 @@ class Roadmap:
         """Write roadmap.safetensors (arrays) and roadmap.json (config, scalars, stats)."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
-        arrays = {key: np.ascontiguousarray(getattr(self, key)) for key in _ARRAY_KEYS}
+        keys = (*_ARRAY_KEYS, "twins") if len(self.twins) else _ARRAY_KEYS  # as before growth
+        arrays = {key: np.ascontiguousarray(getattr(self, key)) for key in keys}
         replace_atomically(out / ARRAYS_NAME, lambda tmp: save_file(arrays, str(tmp)))
         meta = {
             "format": FORMAT,
@@ -480,6 +533,7 @@ class Roadmap:
                 sigma0=meta["sigma0"],
                 stats=meta["stats"],
                 **{k: arrays[k] for k in _ARRAY_KEYS},
+                twins=arrays.get("twins", np.zeros((0, 2), np.int64)),
             )
         except RoadmapError as exc:
             raise RoadmapError(f"{folder}: {exc}") from exc

@@ -60,10 +60,10 @@ class ExploreConfig:
 
 
 def shape_of(roadmap: Roadmap) -> tuple[np.ndarray, np.ndarray]:
-    """(component of each node, degree of each node)."""
+    """(component of each node, twins joined; degree of each node)."""
     k = roadmap.num_nodes
     degree = np.bincount(roadmap.edges.ravel(), minlength=k)
-    return node_components(k, roadmap.edges), degree
+    return node_components(k, np.concatenate([roadmap.edges, roadmap.twins])), degree
 
 
 def thinness(roadmap: Roadmap) -> np.ndarray:

@@ -157,3 +157,19 @@ def test_members_without_states_join_members_with_them_either_way_round():
     )
     for both in (stateless + stated, stated + stateless):
         assert both.states.shape == (4, 5) and both.has_state.sum() == 2
+
+
+def test_a_no_action_pair_across_two_nodes_makes_them_twins_unless_an_edge_joins_them():
+    roadmap, known, m = base(BASE)
+    a, b, c, d = (int(roadmap.nearest_node(np.array([CENTRES[x], 0.0]))) for x in "ABCD")
+    assert roadmap.shortest_paths(a, d) == []
+    # B and C looked alike once (one state, two nodes); A and B too, but a move joins them.
+    experience = members([("B", "C", 0), ("A", "B", 0)], seed=3)
+    grown, _, everything, report = grow(roadmap, known, m, experience, TASK)
+    assert grown.twins.tolist() == [[min(b, c), max(b, c)]]
+    assert report["twins"] == [0, 1] and report["twins_refused"] == 1
+    assert report["components"] == [2, 1]
+    (path,) = grown.shortest_paths(a, d)
+    assert len(path) == 3 and path[0] == a and path[-1] == d and path[1] in (b, c)
+    again, _, _, report = grow(grown, known, everything, members([("D", "D", 0)], seed=4), TASK)
+    assert again.twins.tolist() == grown.twins.tolist() and report["twins"] == [1, 1]

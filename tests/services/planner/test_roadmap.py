@@ -1,5 +1,6 @@
 import itertools
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -8,6 +9,7 @@ from safetensors.numpy import load_file, save_file
 
 from services.planner import roadmap as rm
 from services.planner.roadmap import (
+    ARRAYS_NAME,
     Roadmap,
     RoadmapConfig,
     RoadmapError,
@@ -402,3 +404,25 @@ def test_reference_latents_give_the_reference_roadmap():
     assert stats["edge_weight_before_pruning"] == 3229
     assert (roadmap.num_nodes, len(roadmap.edges)) == (288, 573)
     assert (stats["nodes"], stats["edges"]) == (288, 573)
+
+
+def test_twins_are_one_node_to_paths_and_supports(tmp_path):
+    # 0 - 1   2 - 3, and 1, 2 one state: 0 - {1, 2} - 3
+    roadmap = make_roadmap([(0, 0), (1, 0), (5, 5), (6, 5)], [(0, 1), (2, 3)])
+    roadmap.edge_weights[:] = [4, 7]
+    assert roadmap.shortest_paths(0, 3) == []
+    twinned = replace(roadmap, twins=np.array([[1, 2]], np.int64))
+    assert twinned.shortest_paths(0, 3) == [[0, 1, 3]]  # passes the group by its first node
+    assert twinned.shortest_paths(3, 0) == [[3, 1, 0]]
+    assert twinned.shortest_paths(0, 2) == [[0, 2]]  # arrives at dst itself
+    assert twinned.shortest_paths(2, 1) == [[2]]  # one state: at the goal
+    assert twinned.supports([0, 1, 3]) == twinned.supports([0, 2, 3]) == [4, 7]
+    assert twinned.neighbours(2) == twinned.neighbours(1) == [0, 3]
+    assert twinned.twin_group.tolist() == [0, 1, 1, 3]
+    twinned.save(tmp_path / "twinned")
+    assert Roadmap.load(tmp_path / "twinned").twins.tolist() == [[1, 2]]
+    roadmap.save(tmp_path / "plain")  # no twins: the file is as before growth
+    assert "twins" not in load_file(str(tmp_path / "plain" / ARRAYS_NAME))
+    for bad in ([[2, 1]], [[1, 4]], [[1, 2], [0, 1]]):
+        with pytest.raises(RoadmapError, match="twins"):
+            replace(roadmap, twins=np.array(bad, np.int64))
