@@ -62,13 +62,28 @@ NEW_NODE_MIN = 3
 
 
 def fresh_regions(
-    points: np.ndarray, loose: np.ndarray, epsilon: float, metric: str, min_new: int
+    points: np.ndarray,
+    loose: np.ndarray,
+    epsilon: float,
+    metric: str,
+    min_new: int,
+    links: np.ndarray | None = None,
 ) -> list[np.ndarray]:
-    """Regions (Algorithm 1's phase 2) among the points no node holds; those of at least
-    `min_new` members, as indices into `points`."""
+    """Regions (Algorithm 1's phase 2) among the points no node holds (`loose`, ascending);
+    those of at least `min_new` members, as indices into `points`. `links` (L, 2): pairs of
+    points that are one region however far apart (no-action pairs, as phase 1 joins them)."""
     if not len(loose):
         return []
     labels, _ = connected_regions(points[loose].astype(np.float64), epsilon, metric)
+    if links is not None and len(links):
+        at = np.searchsorted(loose, links)
+        inside = (at < len(loose)) & (loose[np.minimum(at, len(loose) - 1)] == links)
+        at = at[inside.all(1)]
+        first = np.unique(labels, return_index=True)[1]  # a point of each region
+        ends = np.concatenate([at, np.column_stack([np.arange(len(loose)), first[labels]])])
+        n = len(loose)
+        graph = sparse.csr_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
     order = np.argsort(labels, kind="stable")
     groups = np.split(loose[order], np.cumsum(np.bincount(labels))[:-1])
     return [g for g in groups if len(g) >= min_new]
@@ -207,9 +222,24 @@ def grow(
     # Known at its node is not enough: that bound refuses other worlds, not other states.
     close = near_members(everything.points, node, loose, matched, radius, metric)
     node[loose] = np.where(close, matched, -1)
+    # A no-action pair is one state seen twice (Algorithm 1's phase 1 joins the two): an image
+    # of this world (known at its nearest node) without a node joins its partner's node, and
+    # the pairs of two such images hold together in new regions.
+    partner = np.arange(len(node)) ^ 1
+    still = np.repeat(everything.a == 0, 2)
+    known = np.zeros(len(node), bool)
+    known[loose] = matched >= 0
+    glued = still & known & (node < 0) & (node[partner] >= 0)
+    node[glued] = node[partner[glued]]
     built_min = roadmap.config.min_samples or int(roadmap.stats.get("min_samples", 1))
+    pairs = np.flatnonzero(still[0::2] & (node[0::2] < 0) & (node[1::2] < 0))
     fresh = fresh_regions(
-        everything.points, np.flatnonzero(node < 0), radius, metric, max(NEW_NODE_MIN, built_min)
+        everything.points,
+        np.flatnonzero(node < 0),
+        radius,
+        metric,
+        max(NEW_NODE_MIN, built_min),
+        np.column_stack([2 * pairs, 2 * pairs + 1]),
     )
     for i, ids in enumerate(fresh):
         node[ids] = k0 + i
@@ -256,6 +286,7 @@ def grow(
         "images_joined": int((node[base:] >= 0).sum()),
         "images_known": int(sum(m.known for m in found)),  # of those without a node
         "images_known_elsewhere": int(((matched >= 0) & ~close).sum()),  # no member near
+        "images_joined_by_partner": int(glued.sum()),
         "same_state_radius": radius,
         "new_nodes": len(fresh),
         "new_edges": len({(int(i), int(j)) for i, j in edges} - old_edges),

@@ -116,7 +116,7 @@ def test_an_image_known_at_a_node_but_near_none_of_its_images_does_not_join_it()
     one move is 10: another state. Three such images linked to D by an action make a node."""
     roadmap, known, m = base(BASE)
     wide = replace(known, node_thresholds=(50.0,) * roadmap.num_nodes)
-    experience = members([("D", "B", 6)] * 3 + [("B", "B", 0)], seed=4)
+    experience = members([("D", "B", 6)] * 4, seed=4)
     experience.points[1::2] += np.array([3.0, 0.0], np.float32)  # every "after" image
     grown, _, _, report = grow(roadmap, wide, m, experience, TASK)
     assert report["images_known_elsewhere"] == 4 and report["new_nodes"] == 1
@@ -173,3 +173,20 @@ def test_a_no_action_pair_across_two_nodes_makes_them_twins_unless_an_edge_joins
     assert len(path) == 3 and path[0] == a and path[-1] == d and path[1] in (b, c)
     again, _, _, report = grow(grown, known, everything, members([("D", "D", 0)], seed=4), TASK)
     assert again.twins.tolist() == grown.twins.tolist() and report["twins"] == [1, 1]
+
+
+def test_an_image_without_a_node_joins_its_no_action_partners_node():
+    """Phase 1: a no-action pair is one state seen twice, however far apart the two looks."""
+    roadmap, known, m = base(BASE)
+    wide = replace(known, node_thresholds=(50.0,) * roadmap.num_nodes)
+    # B looked at twice, the second look 3 away; and a new state seen from D twice, looked at
+    # again 5 away (a region of two close images and one far look, held together by the pair)
+    experience = members([("B", "B", 0), ("D", "far", 6), ("D", "far", 6), ("far", "far", 0)], 5)
+    experience.points[1] += np.array([3.0, 0.0], np.float32)
+    experience.points[7] += np.array([5.0, 0.0], np.float32)
+    grown, _, _, report = grow(roadmap, wide, m, experience, TASK)
+    b = int(roadmap.nearest_node(np.array([CENTRES["B"], 0.0])))
+    new = grown.point_node[len(m.points) :]
+    assert report["images_joined_by_partner"] == 1 and new[1] == b
+    assert report["new_nodes"] == 1 and (new[[3, 5, 6, 7]] == roadmap.num_nodes).all()
+    assert report["held_for_review"] == 0
