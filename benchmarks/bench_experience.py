@@ -57,6 +57,7 @@ def closed_loop(
     experience: Path | None = None,
     seed: int = 1,
     shortcuts: float = 0.0,
+    max_actions: int | None = None,
 ) -> dict[str, Any]:
     from services.data.experience import ExperienceLog, Recorder
     from services.planner.action_plans import ActionPlanner
@@ -71,9 +72,17 @@ def closed_loop(
     trying = TryShortcuts(planner, shortcuts, seed)
     with make_world(task.name, planner.image_size) as world:
         result = evaluate_system(
-            trying, world, task, pairs, seed=seed, record=record, replan_after_refusal=shortcuts > 0
-        )
-    kept = ("success", "actions_executed", "illegal_actions", "steps_over_optimal", "outcomes")
+            trying, world, task, pairs, seed=seed, record=record,
+            replan_after_refusal=shortcuts > 0, max_actions=max_actions,
+        )  # fmt: skip
+    kept = (
+        "pairs",
+        "success",
+        "actions_executed",
+        "illegal_actions",
+        "steps_over_optimal",
+        "outcomes",
+    )
     return {k: result[k] for k in kept} | {"shortcuts_tried": len(trying.tried)}
 
 
@@ -120,7 +129,7 @@ def run_explore(args: argparse.Namespace) -> dict[str, Any]:
 def run_loop(args: argparse.Namespace) -> dict[str, Any]:
     """Rounds of --loop-pairs ordinary tasks, each recording its experience and then growing
     the roadmap from it (as a deployment grows its model between shifts), until --budget
-    actions (legal or refused) are spent."""
+    actions (legal or refused) are spent (the last task cut short)."""
     model = copy_model(args.model, args.out)
     experience = args.out / "experience"
     shutil.rmtree(experience, ignore_errors=True)
@@ -128,7 +137,9 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
     print(json.dumps(rows[-1]), flush=True)
     spent, seed = 0, args.seed + 1
     while spent < args.budget:
-        loop = closed_loop(model, args.loop_pairs, experience, seed, args.shortcuts)
+        loop = closed_loop(
+            model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent
+        )
         spent, seed = spent + loop["actions_executed"] + loop["illegal_actions"], seed + 1
         row: dict[str, Any] = {"actions": spent, "closed_loop": loop}
         if has_experience(experience):

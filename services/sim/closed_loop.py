@@ -202,8 +202,11 @@ def evaluate_system(
     judge: PlanJudge | None = None,
     record: Recorder | None = None,
     replan_after_refusal: bool = False,
+    max_actions: int | None = None,
 ) -> dict[str, Any]:
     """Random start/goal state pairs run closed loop; success = the simulator reaches the goal.
+    `max_actions`: a budget of actions tried (legal or refused); the task that reaches it is
+    cut short and no further task starts ("pairs" says how many ran).
 
     With a `judge`, also the paper's Table III: correct single transitions (the state after an
     executed action is the state of the plan's next node), VFM success (some visual plan of the
@@ -215,13 +218,20 @@ def evaluate_system(
     successes = steps_on_success = optimal_on_success = executed = illegal = 0
     right_transitions = vfm_ok = apn_ok = 0
     reasons: dict[str, int] = {}
+    ran = 0
     for _ in tqdm(range(pairs), desc="closed loop", unit="pair", disable=not progress):
+        steps = (
+            max_steps if max_actions is None else min(max_steps, max_actions - executed - illegal)
+        )
+        if steps <= 0:
+            break
+        ran += 1
         start = task.sample_state(rng)
         goal = task.sample_state(rng)
         while goal == start:
             goal = task.sample_state(rng)
         episode = run_episode(
-            planner, world, start, goal, rng, max_steps=max_steps, record=record,
+            planner, world, start, goal, rng, max_steps=steps, record=record,
             replan_after_refusal=replan_after_refusal,
         )  # fmt: skip
         executed += len(episode.actions)
@@ -239,10 +249,10 @@ def evaluate_system(
                 right_transitions += judge.node_states[plan.nodes[1]] == after
     if record is not None:
         record.flush()
-    attempted = executed + illegal
+    attempted, pairs = executed + illegal, ran
     result = {
         "pairs": pairs,
-        "success": 100.0 * successes / pairs,
+        "success": 100.0 * successes / pairs if pairs else 0.0,
         "mean_steps": steps_on_success / successes if successes else None,
         "mean_optimal_steps": optimal_on_success / successes if successes else None,
         "steps_over_optimal": steps_on_success / optimal_on_success if optimal_on_success else None,

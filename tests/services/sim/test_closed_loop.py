@@ -276,3 +276,15 @@ def test_skip_first_asks_the_apn_for_the_first_node_to_the_third():
     assert skipped.supports[0] == 0 and len(skipped.confidences) == len(skipped.actions)
     with pytest.raises(ValueError, match="two steps"):
         planner.skip_first(VisualActionPlan(path[:2], [], plan.actions[:1], [0.9], [1]))
+
+
+def test_an_action_budget_cuts_the_last_task_short_and_starts_no_more(world):
+    never = Move(Cell(0, 0), Cell(0, 0))  # onto itself: the world refuses it from any state
+    image = np.zeros((8, 8, 3), np.uint8)
+    refused = FixedPlanner([VisualActionPlan([0, 1], [image, image], [never], [1.0], [1])])
+    result = evaluate_system(
+        refused, world, world.task, 10, max_steps=3, progress=False,
+        replan_after_refusal=True, max_actions=7,
+    )  # fmt: skip
+    assert result["pairs"] == 3 and result["illegal_actions"] == 7
+    assert result["actions_executed"] == 0 and result["success"] == 0.0
