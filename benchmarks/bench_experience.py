@@ -6,8 +6,8 @@
   loop     A copy of the model; rounds of --loop-pairs ordinary closed-loop tasks in
            simulation recording what they did, the roadmap grown after each round, until
            --budget actions are spent; with --shortcuts P a share P of the steps tries the
-           APN's action straight to the plan's second next node; Table I (detour ratio) after
-           every round.
+           APN's action straight to a node further along the plans (TryShortcuts); Table I
+           (detour ratio) after every round.
   timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
 
 Each mode prints one JSON line and writes OUT/results.json; explore plots All and the
@@ -58,6 +58,7 @@ def closed_loop(
     seed: int = 1,
     shortcuts: float = 0.0,
     max_actions: int | None = None,
+    tried: set[tuple[int, int]] | None = None,
 ) -> dict[str, Any]:
     from services.data.experience import ExperienceLog, Recorder
     from services.planner.action_plans import ActionPlanner
@@ -69,7 +70,8 @@ def closed_loop(
     record = None
     if experience is not None:
         record = Recorder(ExperienceLog(experience, task.spec, planner.image_size), task)
-    trying = TryShortcuts(planner, shortcuts, seed)
+    trying = TryShortcuts(planner, shortcuts, seed, tried)
+    already = len(trying.tried)
     with make_world(task.name, planner.image_size) as world:
         result = evaluate_system(
             trying, world, task, pairs, seed=seed, record=record,
@@ -83,7 +85,7 @@ def closed_loop(
         "steps_over_optimal",
         "outcomes",
     )
-    return {k: result[k] for k in kept} | {"shortcuts_tried": len(trying.tried)}
+    return {k: result[k] for k in kept} | {"shortcuts_tried": len(trying.tried) - already}
 
 
 def copy_model(source: Path, out: Path) -> Path:
@@ -136,9 +138,10 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
     rows = [{"actions": 0, **table1(model, args.test, args.pairs)}]
     print(json.dumps(rows[-1]), flush=True)
     spent, seed = 0, args.seed + 1
+    tried: set[tuple[int, int]] = set()  # shortcuts tried, remembered across versions
     while spent < args.budget:
         loop = closed_loop(
-            model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent
+            model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent, tried
         )
         spent, seed = spent + loop["actions_executed"] + loop["illegal_actions"], seed + 1
         row: dict[str, Any] = {"actions": spent, "closed_loop": loop}

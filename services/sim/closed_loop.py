@@ -34,32 +34,38 @@ class ShortcutPlanner(Planner, Protocol):
 
 
 class TryShortcuts:
-    """Plans as `planner` does, but a `share` of the steps with two or more to go try the
-    APN's action from here straight to the plan's second next node, each pair of nodes once.
-    Ordinary tasks re-walk the roadmap's own edges and so teach it nothing new; a tried
-    shortcut either shows a move the data never did (a new edge once grown) or is refused or
-    lands elsewhere, and the closed loop re-plans from what it sees."""
+    """Plans as `planner` does, but a `share` of the steps try a shortcut: the APN's action
+    from here straight to the second next node of one of the plans, each pair of nodes once
+    (`tried`, which may be kept across roadmap versions: built nodes keep their ids). Ordinary
+    tasks re-walk the roadmap's own edges and so teach it nothing new; a tried shortcut either
+    shows a move the data never did or, landing elsewhere, another one (new edges once grown),
+    or is refused; the closed loop re-plans from what it sees."""
 
-    def __init__(self, planner: ShortcutPlanner, share: float, seed: int = 0) -> None:
+    def __init__(
+        self,
+        planner: ShortcutPlanner,
+        share: float,
+        seed: int = 0,
+        tried: set[tuple[int, int]] | None = None,
+    ) -> None:
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"share must lie in [0, 1], got {share}")
         self.planner = planner
         self.share = share
         self.rng = np.random.default_rng(seed)
-        self.tried: set[tuple[int, int]] = set()
+        self.tried = set() if tried is None else tried
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
         plans = self.planner.plan(start, goal, max_plans, expect)
-        if not plans or len(most_confident(plans).actions) < 2:
+        options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
+        fresh = sorted(pair for pair in options if pair not in self.tried)
+        if not fresh or self.rng.random() >= self.share:
             return plans
-        plan = most_confident(plans)
-        pair = (plan.nodes[0], plan.nodes[2])
-        if pair in self.tried or self.rng.random() >= self.share:
-            return plans
+        pair = fresh[self.rng.integers(len(fresh))]
         self.tried.add(pair)
-        return [self.planner.skip_first(plan)]
+        return [self.planner.skip_first(options[pair])]
 
 
 @dataclass

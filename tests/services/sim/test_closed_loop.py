@@ -196,33 +196,41 @@ def test_a_world_left_in_no_state_ends_the_episode_without_a_crash(world):
 
 
 class TwoStepPlanner:
-    """Always two steps to go, from a new node each call; its shortcut is the action 'skip'."""
+    """Two steps to go along each of two plans, from a new node each call; its shortcut is
+    the action 'skip'."""
 
     def __init__(self):
         self.calls = 0
 
     def plan(self, start, goal, max_plans=8, expect=None):
         self.calls += 1
-        nodes = [self.calls, 1000 + self.calls, 2000]
-        return [VisualActionPlan(nodes, [start, start, goal], ["a", "b"], [0.9, 0.9], [1, 1])]
+        n = 10 * self.calls
+        return [
+            VisualActionPlan([n, n + 1, n + 2], [start] * 3, ["a", "b"], [0.9] * 2, [1] * 2),
+            VisualActionPlan([n, n + 3, n + 4], [start] * 3, ["c", "d"], [0.9] * 2, [1] * 2),
+        ]
 
     def skip_first(self, plan):
         return VisualActionPlan(plan.nodes[::2], plan.images[::2], ["skip"], [0.5], [0])
 
 
-def test_try_shortcuts_skips_a_share_of_the_steps_with_two_to_go_each_pair_once():
+def test_try_shortcuts_skips_a_share_of_the_steps_to_a_second_next_node_each_pair_once():
     image = np.zeros((8, 8, 3), np.uint8)
     never, always = TryShortcuts(TwoStepPlanner(), 0.0), TryShortcuts(TwoStepPlanner(), 1.0)
     assert never.plan(image, image)[0].actions == ["a", "b"] and not never.tried
-    assert always.plan(image, image)[0].actions == ["skip"] and always.tried == {(1, 2000)}
+    (taken,) = always.plan(image, image)
+    assert taken.actions == ["skip"] and always.tried == {(taken.nodes[0], taken.nodes[1])}
     half = TryShortcuts(TwoStepPlanner(), 0.5, seed=3)
     tried = sum(half.plan(image, image)[0].actions == ["skip"] for _ in range(400))
     assert tried == len(half.tried) and 150 < tried < 250
-    again = TryShortcuts(FixedPlanner(TwoStepPlanner().plan(image, image)), 1.0)
-    again.planner.skip_first = TwoStepPlanner().skip_first
-    assert [again.plan(image, image)[0].actions for _ in range(2)] == [["skip"], ["a", "b"]]
+    same = TwoStepPlanner()
+    again = TryShortcuts(FixedPlanner(same.plan(image, image)), 1.0, tried={(10, 12)})
+    again.planner.skip_first = same.skip_first
+    taken = [again.plan(image, image)[0] for _ in range(2)]
+    assert taken[0].nodes == [10, 14] and taken[1].actions == ["a", "b"]  # each pair once
+    assert again.tried == {(10, 12), (10, 14)}
     one_step = FixedPlanner([VisualActionPlan([0, 1], [image, image], ["a"], [0.9], [1])])
-    one_step.skip_first = TwoStepPlanner().skip_first
+    one_step.skip_first = same.skip_first
     assert TryShortcuts(one_step, 1.0).plan(image, image)[0].actions == ["a"]  # nothing to skip
     with pytest.raises(ValueError, match="share"):
         TryShortcuts(TwoStepPlanner(), 1.5)
