@@ -22,6 +22,7 @@ box-stacking images through and reconstruction refused them all.
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -98,6 +99,24 @@ def look(vae: VAE, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         latents[part] = mu.numpy()
         errors[part] = _errors(to_uint8(vae.decode(mu, channels_last=True)), pixels)
     return latents, errors
+
+
+def look_many(vae: VAE, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`look` for a batch job (growth, building): one batch per core at a time, each on one
+    torch thread, where torch's own threads split each small convolution and wait on each
+    other (1000 tuples into the box roadmap: 6.3 s on two cores their way)."""
+    threads = torch.get_num_threads()
+    workers = min(threads, -(-len(images) // BATCH))
+    if workers < 2:
+        return look(vae, images)
+    parts = [images[i : i + BATCH] for i in range(0, len(images), BATCH)]
+    torch.set_num_threads(1)  # process-wide: batch jobs only, never a serving process
+    try:
+        with ThreadPoolExecutor(workers) as pool:
+            done = list(pool.map(lambda part: look(vae, part), parts))
+    finally:
+        torch.set_num_threads(threads)
+    return np.concatenate([z for z, _ in done]), np.concatenate([e for _, e in done])
 
 
 def _errors(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:

@@ -14,7 +14,7 @@ from safetensors.numpy import load_file, save_file
 
 from services.encoder.checkpoint import encode_images
 from services.encoder.model import VAE
-from services.planner.knowing import look
+from services.planner.knowing import look_many
 from services.planner.roadmap import RoadmapError
 from shared.checkpoint import replace_atomically
 from shared.dataset import Dataset
@@ -85,8 +85,9 @@ class Members:
             raise ValueError(
                 f"the VAE takes {model.config.image_size} px images, got {image1.shape[1]} px"
             )
-        (mu1, errors1), (mu2, errors2) = look(model, image1), look(model, image2)
         n = len(u)
+        mu, errors = look_many(model, np.concatenate([image1, image2]))
+        (mu1, mu2), (errors1, errors2) = np.split(mu, [n]), np.split(errors, [n])
         return cls(
             points=interleave(mu1, mu2).astype(np.float32),
             errors=interleave(errors1, errors2).astype(np.float32),

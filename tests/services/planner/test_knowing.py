@@ -5,11 +5,14 @@ import pytest
 
 from services.encoder.model import VAE, VAEConfig
 from services.planner.knowing import (
+    BATCH,
     FACTOR,
     MatchError,
     calibrate,
     check_ends,
     load_calibration,
+    look,
+    look_many,
     match,
     save_calibration,
 )
@@ -162,3 +165,21 @@ def test_a_calibration_round_trips_and_bad_files_are_named(chain, tmp_path):
     (tmp_path / "match.json").unlink()
     with pytest.raises(MatchError, match="lsr calibrate"):
         load_calibration(tmp_path, roadmap)
+
+
+def test_look_many_gives_what_look_gives_and_leaves_torch_threads_as_they_were():
+    import torch
+
+    vae = VAE(VAEConfig(image_size=16, latent_dim=4)).eval()
+    images = np.random.default_rng(0).integers(0, 256, (BATCH * 2 + 7, 16, 16, 3), np.uint8)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        z, errors = look_many(vae, images)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    z0, errors0 = look(vae, images)
+    assert z.shape == z0.shape and errors.shape == errors0.shape
+    np.testing.assert_allclose(z, z0, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(errors, errors0, rtol=1e-3, atol=1e-7)
