@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from services.data.experience import has_experience
 from services.planner.eval_vfm import run_vfm_eval
 from services.planner.grow import grow_model
 from services.planner.roadmap import Roadmap
@@ -107,9 +106,8 @@ def closed_loop(
     already = len(trying.tried)
     with make_world(task.name, planner.image_size) as world:
         result = evaluate_system(
-            trying, world, task, pairs, seed=seed, record=record,
-            replan_after_refusal=shortcuts > 0, max_actions=max_actions,
-        )  # fmt: skip
+            trying, world, task, pairs, seed=seed, record=record, max_actions=max_actions
+        )
     kept = (
         "pairs",
         "success",
@@ -176,11 +174,15 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
         loop = closed_loop(
             model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent, tried
         )
-        spent, seed = spent + loop["actions_executed"] + loop["illegal_actions"], seed + 1
+        tried_now = loop["actions_executed"] + loop["illegal_actions"]
+        spent, seed = spent + tried_now, seed + 1
         row: dict[str, Any] = {"actions": spent, "closed_loop": loop}
-        if has_experience(experience):
-            growth = grow_model(model, [experience], args.data)
-            row |= {k: growth[k] for k in ("new_nodes", "new_edges", "held_for_review")}
+        if not tried_now:  # every task refused before acting: no round would ever spend any
+            rows.append(row | {"stopped": "a round of tasks tried no action"})
+            print(json.dumps(rows[-1]), flush=True)
+            break
+        growth = grow_model(model, [experience], args.data)
+        row |= {k: growth[k] for k in ("new_nodes", "new_edges", "held_for_review")}
         rows.append(row | table1(model, args.test, args.pairs))
         print(json.dumps(rows[-1]), flush=True)
     return {"rows": rows}

@@ -39,7 +39,8 @@ class TryShortcuts:
     (`tried`, which may be kept across roadmap versions: built nodes keep their ids). Ordinary
     tasks re-walk the roadmap's own edges and so teach it nothing new; a tried shortcut either
     shows a move the data never did or, landing elsewhere, another one (new edges once grown),
-    or is refused; the closed loop re-plans from what it sees."""
+    or is refused; the closed loop re-plans from what it sees. `last_was_shortcut` tells the
+    loop whether the plan just given was such a try, which a refusal does not end the task for."""
 
     def __init__(
         self,
@@ -54,10 +55,12 @@ class TryShortcuts:
         self.share = share
         self.rng = np.random.default_rng(seed)
         self.tried = set() if tried is None else tried
+        self.last_was_shortcut = False
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
+        self.last_was_shortcut = False
         plans = self.planner.plan(start, goal, max_plans, expect)
         options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
         fresh = sorted(pair for pair in options if pair not in self.tried)
@@ -65,6 +68,7 @@ class TryShortcuts:
             return plans
         pair = fresh[self.rng.integers(len(fresh))]
         self.tried.add(pair)
+        self.last_was_shortcut = True
         return [self.planner.skip_first(options[pair])]
 
 
@@ -79,8 +83,8 @@ class Episode:
     images: list[np.ndarray] = field(default_factory=list)  # observed after each action
     illegal_actions: int = 0
     detail: str | None = None  # the planner's words, where it refused
-    # For the paper's Table III: the plans of every planning step, the state before each
-    # executed action and the state after it.
+    # For the paper's Table III: the plans of every planning step, the plan acted on at each,
+    # and the start state then the state after each action tried (unchanged when refused).
     plans: list[list[VisualActionPlan]] = field(default_factory=list)
     chosen: list[VisualActionPlan] = field(default_factory=list)
     states: list[Any] = field(default_factory=list)
@@ -97,7 +101,6 @@ def run_episode(
     max_plans: int = 8,
     on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
     record: Record | None = None,
-    replan_after_refusal: bool = False,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 
@@ -105,8 +108,9 @@ def run_episode(
     recorded after it (progress for robots; a camera-like world draws each image once).
     `record` gets every executed action as experience (the image planned from, the action,
     the image after), a refused one and each fresh look at an unchanged scene as no-action
-    pairs. A refused action ends the episode (re-planning would repeat it) unless
-    `replan_after_refusal`, for a planner that does not repeat itself (TryShortcuts).
+    pairs. A refused action ends the episode, since re-planning from the unchanged scene would
+    repeat it, unless the planner's `last_was_shortcut` says the plan was a one-off try
+    (TryShortcuts), which it will not give again.
     """
     if goal_image is None:
         if goal is None:
@@ -146,12 +150,12 @@ def run_episode(
             state = world.execute(plan.actions[0], rng)
         except IllegalActionError:
             episode.illegal_actions += 1
-            episode.reason = "illegal_action"  # the world is unchanged: re-planning repeats it
+            episode.states.append(state)
             if record is not None:
                 record(seen, None, world.render(), state, state)
-            if replan_after_refusal:
-                episode.reason = "max_steps"  # unless it ends otherwise
+            if getattr(planner, "last_was_shortcut", False):
                 continue
+            episode.reason = "illegal_action"
             break
         except WorldError as exc:
             episode.reason = f"physics: {exc}"
@@ -207,7 +211,6 @@ def evaluate_system(
     progress: bool = True,
     judge: PlanJudge | None = None,
     record: Recorder | None = None,
-    replan_after_refusal: bool = False,
     max_actions: int | None = None,
 ) -> dict[str, Any]:
     """Random start/goal state pairs run closed loop; success = the simulator reaches the goal.
@@ -236,10 +239,7 @@ def evaluate_system(
         goal = task.sample_state(rng)
         while goal == start:
             goal = task.sample_state(rng)
-        episode = run_episode(
-            planner, world, start, goal, rng, max_steps=steps, record=record,
-            replan_after_refusal=replan_after_refusal,
-        )  # fmt: skip
+        episode = run_episode(planner, world, start, goal, rng, max_steps=steps, record=record)
         executed += len(episode.actions)
         illegal += episode.illegal_actions
         reasons[episode.reason] = reasons.get(episode.reason, 0) + 1
@@ -255,10 +255,10 @@ def evaluate_system(
                 right_transitions += judge.node_states[plan.nodes[1]] == after
     if record is not None:
         record.flush()
-    attempted, pairs = executed + illegal, ran
+    attempted = executed + illegal
     result = {
-        "pairs": pairs,
-        "success": 100.0 * successes / pairs if pairs else 0.0,
+        "pairs": ran,
+        "success": 100.0 * successes / ran if ran else 0.0,
         "mean_steps": steps_on_success / successes if successes else None,
         "mean_optimal_steps": optimal_on_success / successes if successes else None,
         "steps_over_optimal": steps_on_success / optimal_on_success if optimal_on_success else None,
@@ -273,7 +273,7 @@ def evaluate_system(
         result["table3"] = {
             "system": result["success"],
             "transitions": 100.0 * right_transitions / attempted if attempted else None,
-            "vfm": 100.0 * vfm_ok / pairs,
-            "apn": 100.0 * apn_ok / pairs,
+            "vfm": 100.0 * vfm_ok / ran if ran else None,
+            "apn": 100.0 * apn_ok / ran if ran else None,
         }
     return result

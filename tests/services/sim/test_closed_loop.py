@@ -1,3 +1,4 @@
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -236,7 +237,7 @@ def test_try_shortcuts_skips_a_share_of_the_steps_to_a_second_next_node_each_pai
         TryShortcuts(TwoStepPlanner(), 1.5)
 
 
-def test_a_refused_action_ends_the_episode_unless_the_planner_may_change_its_mind(world):
+def test_a_refused_action_ends_the_episode_unless_it_was_a_one_off_shortcut(world):
     start = state(world, [["red", "green"], ["blue"], ["yellow"]])
     goal = state(world, [["red"], ["blue"], ["yellow", "green"]])
     illegal = Move(Cell(0, 0), Cell(1, 1))  # red from under green
@@ -245,20 +246,51 @@ def test_a_refused_action_ends_the_episode_unless_the_planner_may_change_its_min
     oracle = OraclePlanner(world, goal)
 
     class RefusedFirst:
-        def __init__(self):
-            self.first = True
+        def __init__(self, shortcut):
+            self.first, self.shortcut, self.last_was_shortcut = True, shortcut, False
 
         def plan(self, image, goal_image, max_plans=8, expect=None):
+            self.last_was_shortcut = self.first and self.shortcut
             if self.first:
                 self.first = False
                 return [VisualActionPlan([0, 1], [image, goal_image], [illegal], [1.0], [1])]
             return oracle.plan(image, goal_image)
 
     rng = np.random.default_rng(0)
-    stopped = run_episode(RefusedFirst(), world, start, goal, rng)
+    stopped = run_episode(RefusedFirst(shortcut=False), world, start, goal, rng)
     assert stopped.reason == "illegal_action" and not stopped.success
-    went_on = run_episode(RefusedFirst(), world, start, goal, rng, replan_after_refusal=True)
+    assert stopped.states == [start, start]  # the state after the refused action: unchanged
+    went_on = run_episode(RefusedFirst(shortcut=True), world, start, goal, rng)
     assert went_on.success and went_on.illegal_actions == 1 and len(went_on.actions) == 1
+    # an ordinary plan refused under TryShortcuts ends the task rather than being repeated
+    one_step = FixedPlanner([VisualActionPlan([0, 1], [], [illegal], [1.0], [1])])
+    trying = run_episode(TryShortcuts(one_step, 1.0), world, start, goal, rng, max_steps=9)
+    assert trying.reason == "illegal_action" and trying.illegal_actions == 1
+
+
+def test_table3_pairs_each_tried_action_with_the_state_after_it(world):
+    """A refused shortcut counts as one wrong transition; the steps after it stay aligned."""
+    from services.sim.closed_loop import PlanJudge
+
+    task, seeing = world.task, SeeingWorld(world)
+    never = Move(Cell(0, 0), Cell(0, 0))  # onto itself: the world refuses it from any state
+
+    class ShortcutFirst(NodePlanner):
+        last_was_shortcut = False
+
+        def plan(self, start, goal, max_plans=8, expect=None):
+            plans = super().plan(start, goal, max_plans, expect)
+            self.last_was_shortcut = not self.last_was_shortcut and bool(plans[0].actions)
+            if self.last_was_shortcut:
+                plans = [replace(plans[0], actions=[never, *plans[0].actions[1:]])]
+            return plans
+
+    judge = PlanJudge(task, list(task.all_states()))
+    result = evaluate_system(ShortcutFirst(seeing), seeing, task, 4, seed=5, progress=False,
+                             judge=judge)  # fmt: skip
+    executed, refused = result["actions_executed"], result["illegal_actions"]
+    assert result["success"] == 100.0 and refused >= 4
+    assert result["table3"]["transitions"] == pytest.approx(100 * executed / (executed + refused))
 
 
 @pytest.mark.skipif(not (SHIPPED / "apn").is_dir(), reason="shipped model not present")
@@ -290,9 +322,9 @@ def test_an_action_budget_cuts_the_last_task_short_and_starts_no_more(world):
     never = Move(Cell(0, 0), Cell(0, 0))  # onto itself: the world refuses it from any state
     image = np.zeros((8, 8, 3), np.uint8)
     refused = FixedPlanner([VisualActionPlan([0, 1], [image, image], [never], [1.0], [1])])
+    refused.last_was_shortcut = True  # a planner that may try again after a refusal
     result = evaluate_system(
-        refused, world, world.task, 10, max_steps=3, progress=False,
-        replan_after_refusal=True, max_actions=7,
-    )  # fmt: skip
+        refused, world, world.task, 10, max_steps=3, progress=False, max_actions=7
+    )
     assert result["pairs"] == 3 and result["illegal_actions"] == 7
     assert result["actions_executed"] == 0 and result["success"] == 0.0
