@@ -139,11 +139,15 @@ def twin_links(
     node: np.ndarray, a: np.ndarray, edges: np.ndarray, known: np.ndarray, k: int
 ) -> tuple[np.ndarray, int]:
     """(the twin pairs (T, 2), i < j, sorted: `known` ones and those the no-action pairs show;
-    how many links were refused because an edge would join a group to itself)."""
+    how many links were refused because an edge would join a group to itself). Known links
+    are tried first: paths already given rely on them."""
     n1, n2 = node[0::2], node[1::2]
     shown = (a == 0) & (n1 >= 0) & (n2 >= 0) & (n1 != n2)
-    pairs = np.column_stack([np.minimum(n1, n2)[shown], np.maximum(n1, n2)[shown]])
-    candidates = np.unique(np.concatenate([known, pairs]).astype(np.int64), axis=0)
+    pairs = np.unique(
+        np.column_stack([np.minimum(n1, n2)[shown], np.maximum(n1, n2)[shown]]), axis=0
+    )
+    fresh = pairs[~(pairs[:, None] == np.asarray(known)[None]).all(2).any(1)]
+    candidates = np.concatenate([known, fresh]).astype(np.int64)
     group = np.arange(k)
     kept, refused = [], 0
     for i, j in candidates:
@@ -153,7 +157,7 @@ def twin_links(
             continue
         group[group == gj] = gi
         kept.append((i, j))
-    return np.asarray(kept, np.int64).reshape(-1, 2), refused
+    return np.unique(np.asarray(kept, np.int64).reshape(-1, 2), axis=0), refused
 
 
 def contradictions(
@@ -224,7 +228,7 @@ def grow(
     node[loose] = np.where(close, matched, -1)
     # A no-action pair is one state seen twice (Algorithm 1's phase 1 joins the two): an image
     # of this world (known at its nearest node) without a node joins its partner's node, and
-    # the pairs of two such images hold together in new regions.
+    # a pair of two images without a node holds together in new regions.
     partner = np.arange(len(node)) ^ 1
     still = np.repeat(everything.a == 0, 2)
     known = np.zeros(len(node), bool)

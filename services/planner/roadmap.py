@@ -325,6 +325,12 @@ class Roadmap:
                 raise RoadmapError("twins must be sorted and unique")
         if len(self.point_node) and ((self.point_node < -1).any() or (self.point_node >= k).any()):
             raise RoadmapError(f"point_node must hold -1 or node ids in 0..{k - 1}")
+        if len(self.twins) and len(self.edges):
+            group = self.twin_group
+            joined = group[self.edges[:, 0]] == group[self.edges[:, 1]]
+            if joined.any():
+                i, j = self.edges[np.argmax(joined)].tolist()
+                raise RoadmapError(f"twins must not be joined by an edge: edge ({i}, {j})")
 
     @property
     def num_nodes(self) -> int:

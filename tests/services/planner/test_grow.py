@@ -3,7 +3,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from services.planner.grow import contradictions, fresh_regions, grow, same_state_radius
+from services.planner.grow import (
+    contradictions,
+    fresh_regions,
+    grow,
+    same_state_radius,
+    twin_links,
+)
 from services.planner.knowing import calibrate
 from services.planner.members import Members
 from services.planner.roadmap import RoadmapConfig, build_roadmap, pair_distances
@@ -173,6 +179,16 @@ def test_a_no_action_pair_across_two_nodes_makes_them_twins_unless_an_edge_joins
     assert len(path) == 3 and path[0] == a and path[-1] == d and path[1] in (b, c)
     again, _, _, report = grow(grown, known, everything, members([("D", "D", 0)], seed=4), TASK)
     assert again.twins.tolist() == grown.twins.tolist() and report["twins"] == [1, 1]
+
+
+def test_a_twin_link_is_refused_when_a_chain_of_twins_would_hold_an_edge():
+    # no-action pairs 0~1 and 1~2, a move 0 - 2: linking 1~2 would make 0 and 2 one state
+    node = np.array([0, 1, 1, 2, 0, 2])
+    twins, refused = twin_links(node, np.array([0, 0, 1]), np.array([[0, 2]]), np.zeros((0, 2)), 3)
+    assert twins.tolist() == [[0, 1]] and refused == 1
+    known = np.array([[1, 2]])  # a link kept before is kept, and refuses the new one instead
+    twins, refused = twin_links(node, np.array([0, 0, 1]), np.array([[0, 2]]), known, 3)
+    assert twins.tolist() == [[1, 2]] and refused == 1
 
 
 def test_an_image_without_a_node_joins_its_no_action_partners_node():

@@ -423,6 +423,11 @@ def test_twins_are_one_node_to_paths_and_supports(tmp_path):
     assert Roadmap.load(tmp_path / "twinned").twins.tolist() == [[1, 2]]
     roadmap.save(tmp_path / "plain")  # no twins: the file is as before growth
     assert "twins" not in load_file(str(tmp_path / "plain" / ARRAYS_NAME))
+    with pytest.raises(RoadmapError, match="not an edge"):
+        twinned.supports([0, 1, 2, 3])  # a step between twins is no move
     for bad in ([[2, 1]], [[1, 4]], [[1, 2], [0, 1]]):
         with pytest.raises(RoadmapError, match="twins"):
             replace(roadmap, twins=np.array(bad, np.int64))
+    for joined in ([[0, 1]], [[0, 2], [1, 2]]):  # an edge inside a group, directly or by a chain
+        with pytest.raises(RoadmapError, match=r"joined by an edge: edge \(0, 1\)"):
+            replace(roadmap, twins=np.array(joined, np.int64))

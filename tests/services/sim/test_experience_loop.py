@@ -127,3 +127,19 @@ def test_an_illegal_action_is_not_applied(small_world):
     with pytest.raises(IllegalActionError):
         small_world.execute(bad, np.random.default_rng(0))
     assert small_world.read_state() == state
+
+
+def test_exploration_heads_for_neither_its_twin_nor_a_neighbour():
+    from services.sim.explore import _target
+
+    # 1 - 0 ~ 1 twins - 2 - 3 - 4 on a line, one component: only 3 and 4 are worth a try
+    nodes = np.array([[0, 0], [1, 0], [2, 0], [3, 0], [4, 0]], np.float32)
+    edges = np.array([[0, 2], [2, 3], [3, 4]], np.int64)
+    roadmap = Roadmap(
+        config=RoadmapConfig(metric="l1"), epsilon=1.0, mu0=0.5, sigma0=0.5, nodes=nodes,
+        node_sizes=np.full(5, 3, np.int64), edges=edges, edge_weights=np.ones(3, np.int64),
+        point_node=np.repeat(np.arange(5, dtype=np.int64), 3), twins=np.array([[0, 1]]),
+    )  # fmt: skip
+    rng = np.random.default_rng(0)
+    picked = {_target(roadmap, np.zeros(5, int), nodes[0], 0, 1.0, rng) for _ in range(40)}
+    assert picked == {3, 4}
