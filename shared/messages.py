@@ -121,6 +121,7 @@ class GraphReply(Message):
     node_latents: WireArray  # float32 (K, D): node i is row i
     edges: WireArray  # int64 (E, 2), i < j
     edge_weights: WireArray  # int64 (E,)
+    twins: WireArray | None = None  # int64 (T, 2), i < j: nodes experience showed to be one state
     states: list[Any] | None = None  # each node's majority true state, when the model knows it
     purity: list[float] | None = None  # the share of its members in that state
     model_id: str

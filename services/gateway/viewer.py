@@ -36,6 +36,7 @@ from scipy.sparse.csgraph import shortest_path
 from services.gateway.planning import Gateway
 from services.gateway.schemas import ExecuteRequest, TaskRequest
 from shared.bus import call, progress_key
+from shared.graphs import twin_groups
 from shared.images import encode_png, png_b64
 from shared.lru import LruCache
 from shared.messages import (
@@ -81,6 +82,7 @@ class RoadmapNode(BaseModel):
     y: float
     state: dict[str, Any] | None = Field(description="the node's majority true state, if known")
     purity: float | None
+    group: int = Field(description="its twin group: the smallest id of the nodes of one state")
 
 
 class RoadmapGraph(BaseModel):
@@ -90,6 +92,10 @@ class RoadmapGraph(BaseModel):
     layout: str = Field(description="how x and y were found")
     nodes: list[RoadmapNode]
     edges: list[tuple[int, int, int]] = Field(description="node, node, supporting action pairs")
+    twins: list[tuple[int, int]] = Field(
+        description="nodes that experience showed to be one state: a path steps between their "
+        "groups along any edge joining them"
+    )
 
 
 # the layout ---------------------------------------------------------------------------------
@@ -160,7 +166,9 @@ class Viewer:
             return cached
         latents = reply.node_latents.numpy()
         edges, weights = reply.edges.numpy(), reply.edge_weights.numpy()
-        positions = graph_layout(len(latents), edges)
+        twins = np.zeros((0, 2), np.int64) if reply.twins is None else reply.twins.numpy()
+        positions = graph_layout(len(latents), np.concatenate([edges, twins]))
+        groups = twin_groups(len(latents), twins)
         states = reply.states or [None] * len(latents)
         purity = reply.purity or [None] * len(latents)
         graph = RoadmapGraph(
@@ -169,10 +177,18 @@ class Viewer:
             roadmap_version=reply.roadmap_version,
             layout="classical MDS of hop distances",
             nodes=[
-                RoadmapNode(id=i, x=float(x), y=float(y), state=states[i], purity=purity[i])
+                RoadmapNode(
+                    id=i,
+                    x=float(x),
+                    y=float(y),
+                    state=states[i],
+                    purity=purity[i],
+                    group=int(groups[i]),
+                )
                 for i, (x, y) in enumerate(positions)
             ],
             edges=[(int(a), int(b), int(w)) for (a, b), w in zip(edges, weights, strict=True)],
+            twins=[(int(a), int(b)) for a, b in twins],
         )
         with self._lock:
             self._graphs[task] = (graph, latents)

@@ -26,7 +26,7 @@ from typing import Any, Literal
 import numpy as np
 from safetensors.numpy import load_file, save_file
 from scipy import sparse
-from scipy.sparse.csgraph import connected_components, shortest_path
+from scipy.sparse.csgraph import shortest_path
 from scipy.spatial import cKDTree
 
 from services.planner.regions import (
@@ -40,6 +40,7 @@ from services.planner.regions import (
     stable_epsilon,
 )
 from shared.checkpoint import replace_atomically, seal
+from shared.graphs import twin_groups
 
 __all__ = [
     "Metric",
@@ -356,15 +357,7 @@ class Roadmap:
         and unique; their weights, summed over the edges they join), built once."""
         if self._groups is None:
             k = self.num_nodes
-            group = np.arange(k)
-            if len(self.twins):
-                graph = sparse.csr_matrix(
-                    (np.ones(len(self.twins)), (self.twins[:, 0], self.twins[:, 1])), shape=(k, k)
-                )
-                label = connected_components(graph, directed=False)[1]
-                first = np.full(label.max() + 1, k)
-                np.minimum.at(first, label, group)
-                group = first[label]
+            group = twin_groups(k, self.twins)
             ends = np.sort(group[self.edges], axis=1)
             keep = ends[:, 0] != ends[:, 1]
             keys, index = np.unique(ends[keep, 0] * k + ends[keep, 1], return_inverse=True)

@@ -152,6 +152,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             node_latents=WireArray.of(roadmap.nodes.astype(np.float32).reshape(-1, dim)),
             edges=WireArray.of(roadmap.edges.astype(np.int64).reshape(-1, 2)),
             edge_weights=WireArray.of(roadmap.edge_weights.astype(np.int64)),
+            twins=WireArray.of(roadmap.twins.astype(np.int64).reshape(-1, 2)),
             states=None if labels is None else labels[0],
             purity=None if labels is None else labels[1],
             model_id=context.model.model_id,

@@ -600,7 +600,8 @@ async function loadRoadmap() {
   }
   const g = ui.graph;
   const known = g.nodes.filter((n) => n.state).length;
-  $("roadmap-info").textContent = `${g.nodes.length} nodes, ${g.edges.length} edges (model ` +
+  const twins = g.twins.length ? `, ${g.twins.length} twin links (dashed)` : "";
+  $("roadmap-info").textContent = `${g.nodes.length} nodes, ${g.edges.length} edges${twins} (model ` +
     `${g.model_id.slice(0, 8)}; layout: ${g.layout}; ${known} nodes with a known state).`;
   Object.assign(view, { x: 0, y: 0, w: 1000, h: 700 });
   setView();
@@ -609,8 +610,13 @@ async function loadRoadmap() {
   for (const [a, b, w] of g.edges) {
     const [x1, y1] = pos(a);
     const [x2, y2] = pos(b);
-    edges.append(svgEl("line", { x1, y1, x2, y2, class: "edge", "data-edge": `${a}-${b}`,
+    edges.append(svgEl("line", { x1, y1, x2, y2, class: "edge", "data-step": stepKey(a, b),
       "stroke-opacity": Math.min(1, 0.3 + w / 20) }));
+  }
+  for (const [a, b] of g.twins) {  // one state seen as two nodes
+    const [x1, y1] = pos(a);
+    const [x2, y2] = pos(b);
+    edges.append(svgEl("line", { x1, y1, x2, y2, class: "twin" }));
   }
   const nodes = svgEl("g", { class: "nodes" });
   for (const n of g.nodes) {
@@ -659,6 +665,12 @@ async function showNode(id, event) {
 }
 function hideNode() { $("node-tip").hidden = true; }
 
+// A plan steps between twin groups (nodes of one state) along any edge that joins them.
+function stepKey(a, b) {
+  const [x, y] = [ui.graph.nodes[a].group, ui.graph.nodes[b].group].sort((p, q) => p - q);
+  return `${x}-${y}`;
+}
+
 function highlightPath() {
   const svg = $("roadmap-svg");
   for (const node of svg.querySelectorAll(".on, .end")) node.classList.remove("on", "end");
@@ -676,10 +688,11 @@ function highlightPath() {
       dot.classList.add(i === 0 || i === nodes.length - 1 ? "end" : "on");
       dot.parentNode.append(dot);  // drawn on top
     }
-    if (i > 0) {
-      const [a, b] = [nodes[i - 1], n].sort((x, y) => x - y);
-      const line = svg.querySelector(`[data-edge="${a}-${b}"]`);
-      if (line) { line.classList.add("on"); line.parentNode.append(line); }
+    if (i > 0) {  // every edge between the two nodes' twin groups
+      for (const line of svg.querySelectorAll(`[data-step="${stepKey(nodes[i - 1], n)}"]`)) {
+        line.classList.add("on");
+        line.parentNode.append(line);
+      }
     }
     holder.append(el("button", { type: "button", class: "path-node", text: `node ${n}`,
       onfocus: () => showNode(n), onblur: hideNode, onmouseenter: () => showNode(n),

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from services.gateway.auth import digest
-from services.gateway.viewer import graph_layout
+from services.gateway.viewer import Viewer, graph_layout
+from shared.messages import GraphReply, WireArray
 from services.planner.service import node_labels
 
 KEY = "viewer-key-0123456789"
@@ -34,6 +35,28 @@ def test_the_layout_puts_neighbours_close_and_is_deterministic():
     assert np.isfinite(two).all() and graph_layout(1, np.zeros((0, 2), int)).tolist() == [
         [0.5, 0.5]
     ]
+
+
+def test_the_graph_names_each_nodes_twin_group_so_plans_step_between_groups(monkeypatch):
+    # 0 - 1   2 - 3 - 4, and 1 ~ 2 ~ 4 twins through a chain: a plan 0 -> 2 -> 3 uses edge 0-1
+    reply = GraphReply(
+        node_latents=WireArray.of(np.zeros((5, 2), np.float32)),
+        edges=WireArray.of(np.array([[0, 1], [2, 3]], np.int64)),
+        edge_weights=WireArray.of(np.array([2, 5], np.int64)),
+        twins=WireArray.of(np.array([[1, 2], [2, 4]], np.int64)),
+        model_id="m",
+    )
+    viewer = Viewer(gateway=None)
+    monkeypatch.setattr(viewer, "_call", lambda *args: reply)
+    graph, _ = viewer.graph("box_stacking")
+    assert [n.group for n in graph.nodes] == [0, 1, 1, 3, 1]
+    assert graph.twins == [(1, 2), (2, 4)] and graph.edges == [(0, 1, 2), (2, 3, 5)]
+    xy = np.array([[n.x, n.y] for n in graph.nodes])
+    assert np.linalg.norm(xy[1] - xy[2]) < np.linalg.norm(xy[0] - xy[3])  # twins drawn close
+    plain = reply.model_copy(update={"twins": None, "model_id": "older planner"})
+    monkeypatch.setattr(viewer, "_call", lambda *args: plain)
+    graph, _ = viewer.graph("box_stacking")
+    assert [n.group for n in graph.nodes] == [0, 1, 2, 3, 4] and graph.twins == []
 
 
 def test_node_labels_are_read_only_when_they_fit_the_roadmap(tmp_path):

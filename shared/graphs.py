@@ -1,0 +1,20 @@
+"""Graph helpers that the planner and the viewer both need about a roadmap's nodes."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+
+def twin_groups(nodes: int, twins: np.ndarray) -> np.ndarray:
+    """Each of `nodes` nodes' twin group, named by its smallest node id (its own id when it has
+    no twin): the nodes that no-action pairs showed to be one state, through chains of twins."""
+    group = np.arange(nodes)
+    if not len(twins):
+        return group
+    graph = coo_matrix((np.ones(len(twins)), (twins[:, 0], twins[:, 1])), shape=(nodes, nodes))
+    label = connected_components(graph, directed=False)[1]
+    first = np.full(label.max() + 1, nodes)
+    np.minimum.at(first, label, group)
+    return first[label]
