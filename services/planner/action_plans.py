@@ -102,9 +102,10 @@ def edge_actions(
     task: Task, roadmap: Roadmap, apn: APN, node_states: list[Any], show: int = 5
 ) -> dict[str, Any]:
     """The APN's action on every roadmap edge, both ways, applied by the task's rules to the
-    first node's state: does it give the second node's? Plans are chains of these edges and the
-    APN sees only the nodes' latents, so these are the actions a closed loop can execute."""
-    edges = [(int(a), int(b)) for a, b in roadmap.edges]
+    first node's state: does it give the second node's? Plans are chains of these edges (between
+    twin groups, by their first nodes) and the APN sees only the nodes' latents, so these are the
+    actions a closed loop can execute."""
+    edges = [(int(a), int(b)) for a, b in roadmap.group_edges]
     edges += [(b, a) for a, b in edges]
     if not edges:
         return {"edges": 0, "right": 0, "wrong": []}

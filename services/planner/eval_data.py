@@ -82,8 +82,10 @@ def run_data_eval(
     n1, n2 = (np.asarray(roadmap.nearest_node(z), dtype=np.int64) for z in (z1, z2))
     h1 = held(roadmap, z1, n1, members, roadmap.point_node)
     h2 = held(roadmap, z2, n2, members, roadmap.point_node)
-    edges = {(int(a), int(b)) for a, b in roadmap.edges}
-    adjacent = np.array([(min(a, b), max(a, b)) in edges for a, b in zip(n1, n2, strict=True)])
+    group = roadmap.twin_group  # nodes of one state (twins) count as one
+    edges = {(int(a), int(b)) for a, b in roadmap.group_edges}
+    g1, g2 = group[n1], group[n2]
+    adjacent = np.array([(min(a, b), max(a, b)) in edges for a, b in zip(g1, g2, strict=True)])
     act = test.a == 1
 
     row: dict[str, Any] = {
@@ -127,7 +129,7 @@ def run_data_eval(
         "action_pairs_on_an_edge": 100.0 * float(adjacent[act].mean()) if act.any() else None,
         "test_no_action_pairs": int((~act).sum()),
         "no_action_pairs_on_one_node": (
-            100.0 * float((n1 == n2)[~act].mean()) if (~act).any() else None
+            100.0 * float((g1 == g2)[~act].mean()) if (~act).any() else None
         ),
     }
     # Random start/goal pairs of distinct test images, as Table I draws them.

@@ -370,6 +370,12 @@ class Roadmap:
         """Each node's twin group, named by its smallest node id (its own id without twins)."""
         return self._twin_groups()[0]
 
+    @property
+    def group_edges(self) -> np.ndarray:
+        """(E', 2) the edges between twin groups (by their first nodes), i < j, sorted: the
+        steps plans take (the edges themselves when there are no twins)."""
+        return self._twin_groups()[1]
+
     def _neighbour_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """CSR adjacency (indptr, indices) between twin groups, neighbours sorted ascending,
         built once."""

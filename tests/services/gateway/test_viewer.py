@@ -10,8 +10,8 @@ import pytest
 
 from services.gateway.auth import digest
 from services.gateway.viewer import Viewer, graph_layout
-from shared.messages import GraphReply, WireArray
 from services.planner.service import node_labels
+from shared.messages import GraphReply, WireArray
 
 KEY = "viewer-key-0123456789"
 GOOD = {

@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -198,6 +199,16 @@ def test_edge_actions_apply_the_apn_to_every_edge_both_ways(monkeypatch):
     monkeypatch.setattr(action_plans, "propose", propose)
     result = action_plans.edge_actions(task, roadmap, None, states)
     assert (result["edges"], result["right"]) == (4, 3)
+    # node 3 is node 1's twin (one state): plans step 1 -> 2 over the edge 3 - 2, so that is judged
+    twinned = replace(
+        roadmap,
+        nodes=np.array([[0.0], [1.0], [2.0], [3.0]], np.float32),
+        node_sizes=np.ones(4, np.int64),
+        edges=np.array([[0, 1], [2, 3]], np.int64),
+        point_node=np.array([0, 1, 3, 2], np.int64),
+        twins=np.array([[1, 3]], np.int64),
+    )
+    assert action_plans.edge_actions(task, twinned, None, [*states, s1]) == result
     assert result["wrong"] == [
         {
             "from": task.state_to_json(s2),

@@ -419,6 +419,7 @@ def test_twins_are_one_node_to_paths_and_supports(tmp_path):
     assert twinned.supports([0, 1, 3]) == twinned.supports([0, 2, 3]) == [4, 7]
     assert twinned.neighbours(2) == twinned.neighbours(1) == [0, 3]
     assert twinned.twin_group.tolist() == [0, 1, 1, 3]
+    assert twinned.group_edges.tolist() == [[0, 1], [1, 3]]  # the steps plans take
     twinned.save(tmp_path / "twinned")
     assert Roadmap.load(tmp_path / "twinned").twins.tolist() == [[1, 2]]
     roadmap.save(tmp_path / "plain")  # no twins: the file is as before growth
