@@ -86,7 +86,7 @@ class Members:
                 f"the VAE takes {model.config.image_size} px images, got {image1.shape[1]} px"
             )
         n = len(u)
-        mu, errors = look_many(model, np.concatenate([image1, image2]))
+        mu, errors = look_many(model, image1, image2)
         (mu1, mu2), (errors1, errors2) = np.split(mu, [n]), np.split(errors, [n])
         return cls(
             points=interleave(mu1, mu2).astype(np.float32),

@@ -175,7 +175,12 @@ def test_look_many_gives_what_look_gives_and_leaves_torch_threads_as_they_were()
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        z, errors = look_many(vae, images)
+        z, errors = look_many(vae, images[:300], images[300:])  # two sets, one after the other
+        assert torch.get_num_threads() == 2
+        broken = VAE(VAEConfig(image_size=16, latent_dim=4)).eval()
+        broken.decode = None  # every batch fails on a worker thread
+        with pytest.raises(TypeError):
+            look_many(broken, images)
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
@@ -183,3 +188,4 @@ def test_look_many_gives_what_look_gives_and_leaves_torch_threads_as_they_were()
     assert z.shape == z0.shape and errors.shape == errors0.shape
     np.testing.assert_allclose(z, z0, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(errors, errors0, rtol=1e-3, atol=1e-7)
+    assert look_many(vae)[0].shape == (0, 4)
