@@ -56,25 +56,24 @@ def against_states(model: Path, roadmap: Roadmap) -> dict[str, int]:
     """The roadmap judged by the true states its members carry (the sim records them): images
     in a node of another state (its majority's), edges between states no move links, twins of
     two states. All zero for a roadmap that grew honestly."""
+    from services.planner.evaluate import TransitionChecker
+    from services.planner.grow import state_labels
     from services.planner.members import MEMBERS, Members
     from shared.tasks import get_task
 
     folder = roadmap_dir(model)
     if not (folder / MEMBERS).is_file():
         return {}
-    members = Members.load(folder)
     task = get_task(json.loads((model / "vae" / "config.json").read_text())["dataset"]["task"])
-    node, known = roadmap.point_node, members.has_state.astype(bool)
-    state, wrong = {}, 0
-    for n in np.unique(node[known & (node >= 0)]):
-        kinds, counts = np.unique(members.states[known & (node == n)], axis=0, return_counts=True)
-        state[int(n)] = task.array_to_state(kinds[counts.argmax()])
-        wrong += int(counts.sum() - counts.max())
-    moves = {n: {t for _, t in task.neighbours(s)} for n, s in state.items()}
+    labels = state_labels(roadmap, Members.load(folder))
+    state = {
+        n: task.array_to_state(labels.states[n]) for n in np.flatnonzero(labels.members).tolist()
+    }
+    legal = TransitionChecker(task).legal
     return {
-        "images_of_another_state": wrong,
+        "images_of_another_state": round(float(labels.members @ (1 - labels.purity))),
         "edges_no_move_links": sum(
-            a in state and b in state and state[b] not in moves[a]
+            a in state and b in state and not legal(state[a], state[b])
             for a, b in roadmap.edges.tolist()
         ),
         "twins_of_two_states": sum(
