@@ -40,7 +40,12 @@ class TryShortcuts:
     tasks re-walk the roadmap's own edges and so teach it nothing new; a tried shortcut either
     shows a move the data never did or, landing elsewhere, another one (new edges once grown),
     or is refused; the closed loop re-plans from what it sees. `last_was_shortcut` tells the
-    loop whether the plan just given was such a try, which a refusal does not end the task for."""
+    loop whether the plan just given was such a try, which a refusal does not end the task for.
+
+    With `chains` (the task), only shortcuts worth an action are tried: where the plan's first
+    two actions chain into one (ArraySpec.chain: one object moved twice) and the APN's straight
+    action is that one. In box stacking a 2-step plan between states one move apart always
+    moves one box twice, so these are the moves the roadmap misses."""
 
     def __init__(
         self,
@@ -48,6 +53,7 @@ class TryShortcuts:
         share: float,
         seed: int = 0,
         tried: set[tuple[int, int]] | None = None,
+        chains: Task | None = None,
     ) -> None:
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"share must lie in [0, 1], got {share}")
@@ -55,7 +61,16 @@ class TryShortcuts:
         self.share = share
         self.rng = np.random.default_rng(seed)
         self.tried = set() if tried is None else tried
+        self.chains = chains
         self.last_was_shortcut = False
+        self.tries = 0  # shortcuts given
+
+    def _chain(self, plan: VisualActionPlan) -> np.ndarray | None:
+        task = self.chains
+        if task is None or None in plan.actions[:2]:
+            return None
+        first, second = (task.action_to_array(a) for a in plan.actions[:2])
+        return task.spec.action.chain(first, second)
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
@@ -63,13 +78,21 @@ class TryShortcuts:
         self.last_was_shortcut = False
         plans = self.planner.plan(start, goal, max_plans, expect)
         options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
-        fresh = sorted(pair for pair in options if pair not in self.tried)
+        fresh = [pair for pair in sorted(options) if pair not in self.tried]
+        if self.chains is not None:
+            fresh = [pair for pair in fresh if self._chain(options[pair]) is not None]
         if not fresh or self.rng.random() >= self.share:
             return plans
         pair = fresh[self.rng.integers(len(fresh))]
         self.tried.add(pair)
+        shortcut = self.planner.skip_first(options[pair])
+        if self.chains is not None and not np.array_equal(
+            self.chains.action_to_array(shortcut.actions[0]), self._chain(options[pair])
+        ):
+            return plans  # the APN does not see that move: not worth an action
         self.last_was_shortcut = True
-        return [self.planner.skip_first(options[pair])]
+        self.tries += 1
+        return [shortcut]
 
 
 @dataclass
