@@ -7,7 +7,7 @@
            simulation recording what they did, the roadmap grown after each round, until
            --budget actions are spent; with --shortcuts P a share P of the steps tries the
            APN's action straight to a node further along the plans (TryShortcuts; --chains:
-           only where the plan's two actions chain into one); Table I (detour ratio) after
+           first where a plan's two actions chain into one); Table I (detour ratio) after
            every round.
   timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
 
@@ -116,7 +116,10 @@ def closed_loop(
         "steps_over_optimal",
         "outcomes",
     )
-    return {k: result[k] for k in kept} | {"shortcuts_tried": trying.tries}
+    return {k: result[k] for k in kept} | {
+        "shortcuts_tried": trying.tries,
+        "shortcuts_chained": trying.sure,
+    }
 
 
 def copy_model(source: Path, out: Path) -> Path:
@@ -258,7 +261,7 @@ def main() -> None:
         "--shortcuts", type=float, default=0.0, help="loop mode: share of steps that skip a node"
     )
     parser.add_argument(
-        "--chains", action="store_true", help="loop mode: only shortcuts whose actions chain"
+        "--chains", action="store_true", help="loop mode: shortcuts whose actions chain first"
     )
     parser.add_argument("--experience", type=Path, help="timing mode: tuples to grow from")
     parser.add_argument("--new", type=int, default=1000, help="timing mode: tuples to grow")

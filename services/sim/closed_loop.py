@@ -33,6 +33,9 @@ class ShortcutPlanner(Planner, Protocol):
         ...
 
 
+WIDE = 32  # plans TryShortcuts looks through for a chained shortcut
+
+
 class TryShortcuts:
     """Plans as `planner` does, but a `share` of the steps try a shortcut: the APN's action
     from here straight to the second next node of one of the plans, each pair of nodes once
@@ -42,10 +45,10 @@ class TryShortcuts:
     or is refused; the closed loop re-plans from what it sees. `last_was_shortcut` tells the
     loop whether the plan just given was such a try, which a refusal does not end the task for.
 
-    With `chains` (the task), only shortcuts worth an action are tried: where the plan's first
-    two actions chain into one (ArraySpec.chain: one object moved twice) and the APN's straight
-    action is that one. In box stacking a 2-step plan between states one move apart always
-    moves one box twice, so these are the moves the roadmap misses."""
+    With `chains` (the task), shortcuts that are sure to be moves come first: where a plan's
+    first two actions chain into one (ArraySpec.chain: one object moved twice) and the APN's
+    straight action is that one, looked for among up to WIDE plans. In box stacking a 2-step
+    plan between states one move apart always moves one box twice."""
 
     def __init__(
         self,
@@ -64,35 +67,57 @@ class TryShortcuts:
         self.chains = chains
         self.last_was_shortcut = False
         self.tries = 0  # shortcuts given
-
-    def _chain(self, plan: VisualActionPlan) -> np.ndarray | None:
-        task = self.chains
-        if task is None or None in plan.actions[:2]:
-            return None
-        first, second = (task.action_to_array(a) for a in plan.actions[:2])
-        return task.spec.action.chain(first, second)
+        self.sure = 0  # of which chained
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
         self.last_was_shortcut = False
-        plans = self.planner.plan(start, goal, max_plans, expect)
-        options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
-        fresh = [pair for pair in sorted(options) if pair not in self.tried]
-        if self.chains is not None:
-            fresh = [pair for pair in fresh if self._chain(options[pair]) is not None]
-        if not fresh or self.rng.random() >= self.share:
-            return plans
-        pair = fresh[self.rng.integers(len(fresh))]
-        self.tried.add(pair)
-        shortcut = self.planner.skip_first(options[pair])
-        if self.chains is not None and not np.array_equal(
-            self.chains.action_to_array(shortcut.actions[0]), self._chain(options[pair])
-        ):
-            return plans  # the APN does not see that move: not worth an action
+        wide = max(max_plans, WIDE) if self.chains is not None else max_plans
+        plans = self.planner.plan(start, goal, wide, expect)
+        if self.rng.random() >= self.share:
+            return plans[:max_plans]
+        shortcut = self._chained(plans)
+        self.sure += shortcut is not None
+        if shortcut is None:
+            shortcut = self._guess(plans[:max_plans])
+        if shortcut is None:
+            return plans[:max_plans]
         self.last_was_shortcut = True
         self.tries += 1
         return [shortcut]
+
+    def _fresh(self, plans: list[VisualActionPlan]) -> dict[tuple[int, int], VisualActionPlan]:
+        """The plans that have a second next node, by the pair not tried yet."""
+        options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
+        return {pair: p for pair, p in sorted(options.items()) if pair not in self.tried}
+
+    def _guess(self, plans: list[VisualActionPlan]) -> VisualActionPlan | None:
+        fresh = list(self._fresh(plans).items())
+        if not fresh:
+            return None
+        pair, plan = fresh[self.rng.integers(len(fresh))]
+        self.tried.add(pair)
+        return self.planner.skip_first(plan)
+
+    def _chained(self, plans: list[VisualActionPlan]) -> VisualActionPlan | None:
+        task = self.chains
+        if task is None:
+            return None
+        fresh = list(self._fresh(plans).items())
+        for i in self.rng.permutation(len(fresh)).tolist():
+            pair, plan = fresh[i]
+            if None in plan.actions[:2]:
+                continue
+            first, second = (task.action_to_array(a) for a in plan.actions[:2])
+            one = task.spec.action.chain(first, second)
+            if one is None:
+                continue
+            self.tried.add(pair)
+            shortcut = self.planner.skip_first(plan)
+            if np.array_equal(task.action_to_array(shortcut.actions[0]), one):
+                return shortcut
+        return None
 
 
 @dataclass

@@ -330,13 +330,13 @@ def test_an_action_budget_cuts_the_last_task_short_and_starts_no_more(world):
     assert result["actions_executed"] == 0 and result["success"] == 0.0
 
 
-def test_with_chains_only_shortcuts_the_apn_sees_as_one_moved_box_are_tried(world):
+def test_with_chains_a_shortcut_the_apn_sees_as_one_moved_box_comes_first(world):
     task = world.task
     x_to_y, y_to_z = Move(Cell(1, 0), Cell(1, 1)), Move(Cell(1, 1), Cell(1, 2))  # one box twice
     other = Move(Cell(0, 2), Cell(2, 1))  # another box
     image = np.zeros((8, 8, 3), np.uint8)
-    chained = VisualActionPlan([0, 1, 2], [], [x_to_y, y_to_z], [0.9] * 2, [1] * 2)
-    unchained = VisualActionPlan([0, 3, 4], [], [x_to_y, other], [0.9] * 2, [1] * 2)
+    unchained = VisualActionPlan([0, 1, 2], [], [x_to_y, other], [0.9] * 2, [1] * 2)
+    chained = VisualActionPlan([0, 3, 4], [], [x_to_y, y_to_z], [0.9] * 2, [1] * 2)
 
     class Apn(FixedPlanner):
         straight = Move(Cell(1, 0), Cell(1, 2))
@@ -344,12 +344,13 @@ def test_with_chains_only_shortcuts_the_apn_sees_as_one_moved_box_are_tried(worl
         def skip_first(self, plan):
             return VisualActionPlan(plan.nodes[::2], [], [self.straight], [0.9], [0])
 
-    trying = TryShortcuts(Apn([chained, unchained]), 1.0, chains=task)
-    (taken,) = trying.plan(image, image)
-    assert taken.actions == [Apn.straight] and trying.tried == {(0, 2)} and trying.tries == 1
-    assert trying.plan(image, image) == [chained, unchained]  # (0, 4) does not chain
+    for seed in range(5):  # whatever the draw, the sure one first, then a guess
+        trying = TryShortcuts(Apn([unchained, chained]), 1.0, seed, chains=task)
+        assert trying.plan(image, image)[0].nodes == [0, 4] and trying.sure == 1
+        assert trying.plan(image, image)[0].nodes == [0, 2] and trying.tries == 2
+        assert trying.sure == 1 and trying.tried == {(0, 2), (0, 4)}
     wrong = Apn([chained])
-    wrong.straight = other  # the APN sees another move: not worth an action
+    wrong.straight = other  # the APN sees another move: no sure one, and nothing left to guess
     doubting = TryShortcuts(wrong, 1.0, chains=task)
     assert doubting.plan(image, image) == [chained] and not doubting.last_was_shortcut
-    assert doubting.tried == {(0, 2)} and doubting.tries == 0
+    assert doubting.tried == {(0, 4)} and doubting.tries == 0
