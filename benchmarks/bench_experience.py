@@ -181,7 +181,7 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
         tried_now = loop["actions_executed"] + loop["illegal_actions"]
         spent, seed = spent + tried_now, seed + 1
         row: dict[str, Any] = {"actions": spent, "closed_loop": loop}
-        if not tried_now:  # every task refused before acting: no round would ever spend any
+        if not tried_now:  # every task ended before acting: stop rather than spin
             rows.append(row | {"stopped": "a round of tasks tried no action"})
             print(json.dumps(rows[-1]), flush=True)
             break

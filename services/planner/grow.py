@@ -146,7 +146,8 @@ def twin_links(
     pairs = np.unique(
         np.column_stack([np.minimum(n1, n2)[shown], np.maximum(n1, n2)[shown]]), axis=0
     )
-    fresh = pairs[~(pairs[:, None] == np.asarray(known)[None]).all(2).any(1)]
+    known = np.asarray(known, np.int64).reshape(-1, 2)
+    fresh = pairs[~np.isin(pairs[:, 0] * k + pairs[:, 1], known[:, 0] * k + known[:, 1])]
     candidates = np.concatenate([known, fresh]).astype(np.int64)
     group = np.arange(k)
     kept, refused = [], 0

@@ -20,6 +20,9 @@ from shared.tasks.base import IllegalActionError, Task, World, WorldError, optim
 
 
 class Planner(Protocol):
+    """May also have `last_was_shortcut`: True when its last plan was a one-off try
+    (TryShortcuts), after whose refusal the loop plans again rather than stopping."""
+
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = ..., expect: int | None = ...
     ) -> list[VisualActionPlan]:
@@ -73,47 +76,52 @@ class TryShortcuts:
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
         self.last_was_shortcut = False
-        wide = max(max_plans, WIDE) if self.chains is not None else max_plans
-        plans = self.planner.plan(start, goal, wide, expect)
-        if self.rng.random() >= self.share:
-            return plans[:max_plans]
-        shortcut = self._chained(plans)
-        self.sure += shortcut is not None
+        plans = self.planner.plan(start, goal, max_plans, expect)
+        shortcut = None
+        if self.chains is None:
+            fresh = self._fresh(plans)
+            if fresh and self.rng.random() < self.share:
+                shortcut = self._guess(fresh)
+        elif self.rng.random() < self.share:
+            wide = plans if max_plans >= WIDE else self.planner.plan(start, goal, WIDE, expect)
+            shortcut = self._chained(wide, self.chains)
+            self.sure += shortcut is not None
+            if shortcut is None and (fresh := self._fresh(plans)):
+                shortcut = self._guess(fresh)
         if shortcut is None:
-            shortcut = self._guess(plans[:max_plans])
-        if shortcut is None:
-            return plans[:max_plans]
+            return plans
         self.last_was_shortcut = True
         self.tries += 1
         return [shortcut]
 
     def _fresh(self, plans: list[VisualActionPlan]) -> dict[tuple[int, int], VisualActionPlan]:
-        """The plans that have a second next node, by the pair not tried yet."""
-        options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
-        return {pair: p for pair, p in sorted(options.items()) if pair not in self.tried}
+        """The best-ranked plan through each pair (first node, second next) not tried yet."""
+        options: dict[tuple[int, int], VisualActionPlan] = {}
+        for p in plans:
+            if len(p.nodes) > 2 and (p.nodes[0], p.nodes[2]) not in self.tried:
+                options.setdefault((p.nodes[0], p.nodes[2]), p)
+        return dict(sorted(options.items()))
 
-    def _guess(self, plans: list[VisualActionPlan]) -> VisualActionPlan | None:
-        fresh = list(self._fresh(plans).items())
-        if not fresh:
-            return None
-        pair, plan = fresh[self.rng.integers(len(fresh))]
+    def _guess(self, fresh: dict[tuple[int, int], VisualActionPlan]) -> VisualActionPlan:
+        pairs = list(fresh)
+        pair = pairs[self.rng.integers(len(pairs))]
         self.tried.add(pair)
-        return self.planner.skip_first(plan)
+        return self.planner.skip_first(fresh[pair])
 
-    def _chained(self, plans: list[VisualActionPlan]) -> VisualActionPlan | None:
-        task = self.chains
-        if task is None:
-            return None
-        fresh = list(self._fresh(plans).items())
-        for i in self.rng.permutation(len(fresh)).tolist():
-            pair, plan = fresh[i]
-            if None in plan.actions[:2]:
+    def _chained(self, plans: list[VisualActionPlan], task: Task) -> VisualActionPlan | None:
+        """The APN's action over a pair not tried yet where a plan's first two actions chain
+        into one and the APN proposes that one; every such pair asked is tried."""
+        for i in self.rng.permutation(len(plans)).tolist():
+            plan = plans[i]
+            if len(plan.nodes) < 3 or (plan.nodes[0], plan.nodes[2]) in self.tried:
+                continue
+            if any(a is None for a in plan.actions[:2]):
                 continue
             first, second = (task.action_to_array(a) for a in plan.actions[:2])
             one = task.spec.action.chain(first, second)
             if one is None:
                 continue
-            self.tried.add(pair)
+            self.tried.add((plan.nodes[0], plan.nodes[2]))
             shortcut = self.planner.skip_first(plan)
             if np.array_equal(task.action_to_array(shortcut.actions[0]), one):
                 return shortcut
@@ -136,6 +144,7 @@ class Episode:
     plans: list[list[VisualActionPlan]] = field(default_factory=list)
     chosen: list[VisualActionPlan] = field(default_factory=list)
     states: list[Any] = field(default_factory=list)
+    refused: list[bool] = field(default_factory=list)  # for each action tried
 
 
 def run_episode(
@@ -199,9 +208,10 @@ def run_episode(
         except IllegalActionError:
             episode.illegal_actions += 1
             episode.states.append(state)
+            episode.refused.append(True)
             if record is not None:
                 record(seen, None, world.render(), state, state)
-            if getattr(planner, "last_was_shortcut", False):
+            if getattr(planner, "last_was_shortcut", False) is True:
                 continue
             episode.reason = "illegal_action"
             break
@@ -211,6 +221,7 @@ def run_episode(
         expect = plan.nodes[1]
         episode.actions.append(plan.actions[0])
         episode.states.append(state)
+        episode.refused.append(False)
         episode.images.append(last := world.render())
         if record is not None:
             record(seen, plan.actions[0], last, before, state)
@@ -266,8 +277,9 @@ def evaluate_system(
     cut short and no further task starts ("pairs" says how many ran).
 
     With a `judge`, also the paper's Table III: correct single transitions (the state after an
-    executed action is the state of the plan's next node), VFM success (some visual plan of the
-    first planning step is correct) and APN success (the chosen plan's actions all are).
+    action tried is the state of the plan's next node; a refused one never is), VFM success
+    (some visual plan of the first planning step is correct) and APN success (the chosen
+    plan's actions all are).
     """
     from tqdm import tqdm
 
@@ -299,8 +311,9 @@ def evaluate_system(
             first = episode.plans[0] if episode.plans else []
             vfm_ok += any(judge.visual_plan_ok(p, start, goal) for p in first)
             apn_ok += bool(episode.chosen) and judge.action_plan_ok(episode.chosen[0])
-            for plan, after in zip(episode.chosen, episode.states[1:], strict=False):
-                right_transitions += judge.node_states[plan.nodes[1]] == after
+            tried = zip(episode.chosen, episode.states[1:], episode.refused, strict=False)
+            for plan, after, refused in tried:
+                right_transitions += not refused and judge.node_states[plan.nodes[1]] == after
     if record is not None:
         record.flush()
     attempted = executed + illegal

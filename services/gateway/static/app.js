@@ -600,7 +600,8 @@ async function loadRoadmap() {
   }
   const g = ui.graph;
   const known = g.nodes.filter((n) => n.state).length;
-  const twins = g.twins.length ? `, ${g.twins.length} twin links (dashed)` : "";
+  const twinLinks = g.twins ?? [];
+  const twins = twinLinks.length ? `, ${twinLinks.length} twin links (dashed)` : "";
   $("roadmap-info").textContent = `${g.nodes.length} nodes, ${g.edges.length} edges${twins} (model ` +
     `${g.model_id.slice(0, 8)}; layout: ${g.layout}; ${known} nodes with a known state).`;
   Object.assign(view, { x: 0, y: 0, w: 1000, h: 700 });
@@ -613,7 +614,7 @@ async function loadRoadmap() {
     edges.append(svgEl("line", { x1, y1, x2, y2, class: "edge", "data-step": stepKey(a, b),
       "stroke-opacity": Math.min(1, 0.3 + w / 20) }));
   }
-  for (const [a, b] of g.twins) {  // one state seen as two nodes
+  for (const [a, b] of twinLinks) {  // one state seen as two nodes
     const [x1, y1] = pos(a);
     const [x2, y2] = pos(b);
     edges.append(svgEl("line", { x1, y1, x2, y2, class: "twin" }));
@@ -667,7 +668,9 @@ function hideNode() { $("node-tip").hidden = true; }
 
 // A plan steps between twin groups (nodes of one state) along any edge that joins them.
 function stepKey(a, b) {
-  const [x, y] = [ui.graph.nodes[a].group, ui.graph.nodes[b].group].sort((p, q) => p - q);
+  // a node the loaded graph lacks (the roadmap grew since) or an older gateway: its own id
+  const group = (n) => ui.graph?.nodes[n]?.group ?? n;
+  const [x, y] = [group(a), group(b)].sort((p, q) => p - q);
   return `${x}-${y}`;
 }
 

@@ -259,7 +259,7 @@ def test_a_refused_action_ends_the_episode_unless_it_was_a_one_off_shortcut(worl
     rng = np.random.default_rng(0)
     stopped = run_episode(RefusedFirst(shortcut=False), world, start, goal, rng)
     assert stopped.reason == "illegal_action" and not stopped.success
-    assert stopped.states == [start, start]  # the state after the refused action: unchanged
+    assert stopped.states == [start, start] and stopped.refused == [True]  # unchanged
     went_on = run_episode(RefusedFirst(shortcut=True), world, start, goal, rng)
     assert went_on.success and went_on.illegal_actions == 1 and len(went_on.actions) == 1
     # an ordinary plan refused under TryShortcuts ends the task rather than being repeated
