@@ -6,9 +6,9 @@
   loop     A copy of the model; rounds of --loop-pairs ordinary closed-loop tasks in
            simulation recording what they did, the roadmap grown after each round, until
            --budget actions are spent; with --shortcuts P a share P of the steps tries the
-           APN's action straight to a node further along the plans (TryShortcuts; --chains:
-           first where a plan's two actions chain into one); Table I (detour ratio) after
-           every round.
+           APN's action straight to a node further along the plans (TryShortcuts; --informed:
+           first where a plan's two actions chain into one, and never an action an edge from
+           there already shows); Table I (detour ratio) after every round.
   timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
 
 Each mode prints one JSON line and writes OUT/results.json; explore plots All and the
@@ -91,7 +91,7 @@ def closed_loop(
     shortcuts: float = 0.0,
     max_actions: int | None = None,
     tried: set[tuple[int, int]] | None = None,
-    chains: bool = False,
+    informed: bool = False,
 ) -> dict[str, Any]:
     from services.data.experience import ExperienceLog, Recorder
     from services.planner.action_plans import ActionPlanner
@@ -103,7 +103,7 @@ def closed_loop(
     record = None
     if experience is not None:
         record = Recorder(ExperienceLog(experience, task.spec, planner.image_size), task)
-    trying = TryShortcuts(planner, shortcuts, seed, tried, task if chains else None)
+    trying = TryShortcuts(planner, shortcuts, seed, tried, task if informed else None)
     with make_world(task.name, planner.image_size) as world:
         result = evaluate_system(
             trying, world, task, pairs, seed=seed, record=record, max_actions=max_actions
@@ -176,7 +176,7 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
     while spent < args.budget:
         loop = closed_loop(
             model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent, tried,
-            args.chains,
+            args.informed,
         )  # fmt: skip
         tried_now = loop["actions_executed"] + loop["illegal_actions"]
         spent, seed = spent + tried_now, seed + 1
@@ -261,7 +261,9 @@ def main() -> None:
         "--shortcuts", type=float, default=0.0, help="loop mode: share of steps that skip a node"
     )
     parser.add_argument(
-        "--chains", action="store_true", help="loop mode: shortcuts whose actions chain first"
+        "--informed",
+        action="store_true",
+        help="loop mode: chained shortcuts first, no guess the roadmap knows (TryShortcuts task=)",
     )
     parser.add_argument("--experience", type=Path, help="timing mode: tuples to grow from")
     parser.add_argument("--new", type=int, default=1000, help="timing mode: tuples to grow")

@@ -35,6 +35,10 @@ class ShortcutPlanner(Planner, Protocol):
         """`plan` with its first two steps as one action (ActionPlanner.skip_first)."""
         ...
 
+    def known_actions(self, node: int) -> np.ndarray:
+        """The APN's actions over the edges from `node` (ActionPlanner.known_actions)."""
+        ...
+
 
 WIDE = 32  # plans TryShortcuts looks through for a chained shortcut
 
@@ -48,10 +52,12 @@ class TryShortcuts:
     or is refused; the closed loop re-plans from what it sees. `last_was_shortcut` tells the
     loop whether the plan just given was such a try, which a refusal does not end the task for.
 
-    With `chains` (the task), shortcuts that are sure to be moves come first: where a plan's
-    first two actions chain into one (ArraySpec.chain: one object moved twice) and the APN's
-    straight action is that one, looked for among up to WIDE plans. In box stacking a 2-step
-    plan between states one move apart always moves one box twice."""
+    With the `task` (its action spec), tries are informed. Shortcuts that are sure to be moves
+    come first: where a plan's first two actions chain into one (ArraySpec.chain: one object
+    moved twice) and the APN's straight action is that one, looked for among up to WIDE plans
+    (in box stacking a 2-step plan between states one move apart always moves one box twice).
+    Else a guess, but never an action the roadmap already knows from here (the APN's action
+    over one of its edges): that one would only re-walk an edge."""
 
     def __init__(
         self,
@@ -59,7 +65,7 @@ class TryShortcuts:
         share: float,
         seed: int = 0,
         tried: set[tuple[int, int]] | None = None,
-        chains: Task | None = None,
+        task: Task | None = None,
     ) -> None:
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"share must lie in [0, 1], got {share}")
@@ -67,7 +73,7 @@ class TryShortcuts:
         self.share = share
         self.rng = np.random.default_rng(seed)
         self.tried = set() if tried is None else tried
-        self.chains = chains
+        self.task = task
         self.last_was_shortcut = False
         self.tries = 0  # shortcuts given
         self.sure = 0  # of which chained
@@ -78,16 +84,16 @@ class TryShortcuts:
         self.last_was_shortcut = False
         plans = self.planner.plan(start, goal, max_plans, expect)
         shortcut = None
-        if self.chains is None:
+        if self.task is None:
             fresh = self._fresh(plans)
             if fresh and self.rng.random() < self.share:
                 shortcut = self._guess(fresh)
         elif self.rng.random() < self.share:
             wide = plans if max_plans >= WIDE else self.planner.plan(start, goal, WIDE, expect)
-            shortcut = self._chained(wide, self.chains)
+            shortcut = self._chained(wide, self.task)
             self.sure += shortcut is not None
             if shortcut is None and (fresh := self._fresh(plans)):
-                shortcut = self._guess(fresh)
+                shortcut = self._informed_guess(fresh, self.task)
         if shortcut is None:
             return plans
         self.last_was_shortcut = True
@@ -107,6 +113,23 @@ class TryShortcuts:
         pair = pairs[self.rng.integers(len(pairs))]
         self.tried.add(pair)
         return self.planner.skip_first(fresh[pair])
+
+    def _informed_guess(
+        self, fresh: dict[tuple[int, int], VisualActionPlan], task: Task
+    ) -> VisualActionPlan | None:
+        """A guess whose action is one (not None) that no edge from here already shows."""
+        pairs = list(fresh)
+        known = self.planner.known_actions(pairs[0][0])
+        for i in self.rng.permutation(len(pairs)).tolist():
+            self.tried.add(pairs[i])
+            shortcut = self.planner.skip_first(fresh[pairs[i]])
+            action = shortcut.actions[0]
+            if action is None:
+                continue
+            array = task.action_to_array(action)
+            if not any(task.same_action(array, k) for k in known):
+                return shortcut
+        return None
 
     def _chained(self, plans: list[VisualActionPlan], task: Task) -> VisualActionPlan | None:
         """The APN's action over a pair not tried yet where a plan's first two actions chain
