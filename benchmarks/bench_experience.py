@@ -6,9 +6,8 @@
   loop     A copy of the model; rounds of --loop-pairs ordinary closed-loop tasks in
            simulation recording what they did, the roadmap grown after each round, until
            --budget actions are spent; with --shortcuts P a share P of the steps tries the
-           APN's action straight to a node further along the plans (TryShortcuts; --informed:
-           first where a plan's two actions chain into one, and never an action an edge from
-           there already shows); Table I (detour ratio) after every round.
+           APN's action straight to a node further along the plans (TryShortcuts); Table I
+           (detour ratio) after every round.
   timing   --new recorded tuples (from --experience) grown into the model's roadmap, timed.
 
 Each mode prints one JSON line and writes OUT/results.json; explore plots All and the
@@ -91,7 +90,6 @@ def closed_loop(
     shortcuts: float = 0.0,
     max_actions: int | None = None,
     tried: set[tuple[int, int]] | None = None,
-    informed: bool = False,
 ) -> dict[str, Any]:
     from services.data.experience import ExperienceLog, Recorder
     from services.planner.action_plans import ActionPlanner
@@ -103,7 +101,8 @@ def closed_loop(
     record = None
     if experience is not None:
         record = Recorder(ExperienceLog(experience, task.spec, planner.image_size), task)
-    trying = TryShortcuts(planner, shortcuts, seed, tried, task if informed else None)
+    trying = TryShortcuts(planner, shortcuts, seed, tried)
+    already = len(trying.tried)
     with make_world(task.name, planner.image_size) as world:
         result = evaluate_system(
             trying, world, task, pairs, seed=seed, record=record, max_actions=max_actions
@@ -116,10 +115,7 @@ def closed_loop(
         "steps_over_optimal",
         "outcomes",
     )
-    return {k: result[k] for k in kept} | {
-        "shortcuts_tried": trying.tries,
-        "shortcuts_chained": trying.sure,
-    }
+    return {k: result[k] for k in kept} | {"shortcuts_tried": len(trying.tried) - already}
 
 
 def copy_model(source: Path, out: Path) -> Path:
@@ -175,9 +171,8 @@ def run_loop(args: argparse.Namespace) -> dict[str, Any]:
     tried: set[tuple[int, int]] = set()  # shortcuts tried, remembered across versions
     while spent < args.budget:
         loop = closed_loop(
-            model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent, tried,
-            args.informed,
-        )  # fmt: skip
+            model, args.loop_pairs, experience, seed, args.shortcuts, args.budget - spent, tried
+        )
         tried_now = loop["actions_executed"] + loop["illegal_actions"]
         spent, seed = spent + tried_now, seed + 1
         row: dict[str, Any] = {"actions": spent, "closed_loop": loop}
@@ -259,11 +254,6 @@ def main() -> None:
     parser.add_argument("--loop-pairs", type=int, default=100, help="loop mode: tasks a round")
     parser.add_argument(
         "--shortcuts", type=float, default=0.0, help="loop mode: share of steps that skip a node"
-    )
-    parser.add_argument(
-        "--informed",
-        action="store_true",
-        help="loop mode: chained shortcuts first, no guess the roadmap knows (TryShortcuts task=)",
     )
     parser.add_argument("--experience", type=Path, help="timing mode: tuples to grow from")
     parser.add_argument("--new", type=int, default=1000, help="timing mode: tuples to grow")

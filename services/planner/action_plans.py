@@ -97,16 +97,6 @@ class ActionPlanner:
             supports=[0, *plan.supports[2:]],
         )
 
-    def known_actions(self, node: int) -> np.ndarray:
-        """(n, action dims): the APN's action over each edge from `node`'s twin group, the
-        moves the roadmap already knows from there."""
-        roadmap = self.planner.roadmap
-        ends = roadmap.neighbours(node)
-        z = roadmap.nodes[[node, *ends]].astype(np.float32)
-        if not ends:
-            return np.zeros((0, *self.task.spec.action.shape), self.task.spec.action.dtype)
-        return propose(self.apn, np.repeat(z[:1], len(ends), axis=0), z[1:])[0]
-
 
 def edge_actions(
     task: Task, roadmap: Roadmap, apn: APN, node_states: list[Any], show: int = 5

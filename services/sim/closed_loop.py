@@ -35,13 +35,6 @@ class ShortcutPlanner(Planner, Protocol):
         """`plan` with its first two steps as one action (ActionPlanner.skip_first)."""
         ...
 
-    def known_actions(self, node: int) -> np.ndarray:
-        """The APN's actions over the edges from `node` (ActionPlanner.known_actions)."""
-        ...
-
-
-WIDE = 32  # plans TryShortcuts looks through for a chained shortcut
-
 
 class TryShortcuts:
     """Plans as `planner` does, but a `share` of the steps try a shortcut: the APN's action
@@ -50,14 +43,7 @@ class TryShortcuts:
     tasks re-walk the roadmap's own edges and so teach it nothing new; a tried shortcut either
     shows a move the data never did or, landing elsewhere, another one (new edges once grown),
     or is refused; the closed loop re-plans from what it sees. `last_was_shortcut` tells the
-    loop whether the plan just given was such a try, which a refusal does not end the task for.
-
-    With the `task` (its action spec), tries are informed. Shortcuts that are sure to be moves
-    come first: where a plan's first two actions chain into one (ArraySpec.chain: one object
-    moved twice) and the APN's straight action is that one, looked for among up to WIDE plans
-    (in box stacking a 2-step plan between states one move apart always moves one box twice).
-    Else a guess, but never an action the roadmap already knows from here (the APN's action
-    over one of its edges): that one would only re-walk an edge."""
+    loop whether the plan just given was such a try, which a refusal does not end the task for."""
 
     def __init__(
         self,
@@ -65,7 +51,6 @@ class TryShortcuts:
         share: float,
         seed: int = 0,
         tried: set[tuple[int, int]] | None = None,
-        task: Task | None = None,
     ) -> None:
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"share must lie in [0, 1], got {share}")
@@ -73,82 +58,21 @@ class TryShortcuts:
         self.share = share
         self.rng = np.random.default_rng(seed)
         self.tried = set() if tried is None else tried
-        self.task = task
         self.last_was_shortcut = False
-        self.tries = 0  # shortcuts given
-        self.sure = 0  # of which chained
 
     def plan(
         self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
     ) -> list[VisualActionPlan]:
         self.last_was_shortcut = False
         plans = self.planner.plan(start, goal, max_plans, expect)
-        shortcut = None
-        if self.task is None:
-            fresh = self._fresh(plans)
-            if fresh and self.rng.random() < self.share:
-                shortcut = self._guess(fresh)
-        elif self.rng.random() < self.share:
-            wide = plans if max_plans >= WIDE else self.planner.plan(start, goal, WIDE, expect)
-            shortcut = self._chained(wide, self.task)
-            self.sure += shortcut is not None
-            if shortcut is None and (fresh := self._fresh(plans)):
-                shortcut = self._informed_guess(fresh, self.task)
-        if shortcut is None:
+        options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
+        fresh = sorted(pair for pair in options if pair not in self.tried)
+        if not fresh or self.rng.random() >= self.share:
             return plans
-        self.last_was_shortcut = True
-        self.tries += 1
-        return [shortcut]
-
-    def _fresh(self, plans: list[VisualActionPlan]) -> dict[tuple[int, int], VisualActionPlan]:
-        """The best-ranked plan through each pair (first node, second next) not tried yet."""
-        options: dict[tuple[int, int], VisualActionPlan] = {}
-        for p in plans:
-            if len(p.nodes) > 2 and (p.nodes[0], p.nodes[2]) not in self.tried:
-                options.setdefault((p.nodes[0], p.nodes[2]), p)
-        return dict(sorted(options.items()))
-
-    def _guess(self, fresh: dict[tuple[int, int], VisualActionPlan]) -> VisualActionPlan:
-        pairs = list(fresh)
-        pair = pairs[self.rng.integers(len(pairs))]
+        pair = fresh[self.rng.integers(len(fresh))]
         self.tried.add(pair)
-        return self.planner.skip_first(fresh[pair])
-
-    def _informed_guess(
-        self, fresh: dict[tuple[int, int], VisualActionPlan], task: Task
-    ) -> VisualActionPlan | None:
-        """A guess whose action is one (not None) that no edge from here already shows."""
-        pairs = list(fresh)
-        known = self.planner.known_actions(pairs[0][0])
-        for i in self.rng.permutation(len(pairs)).tolist():
-            self.tried.add(pairs[i])
-            shortcut = self.planner.skip_first(fresh[pairs[i]])
-            action = shortcut.actions[0]
-            if action is None:
-                continue
-            array = task.action_to_array(action)
-            if not any(task.same_action(array, k) for k in known):
-                return shortcut
-        return None
-
-    def _chained(self, plans: list[VisualActionPlan], task: Task) -> VisualActionPlan | None:
-        """The APN's action over a pair not tried yet where a plan's first two actions chain
-        into one and the APN proposes that one; every such pair asked is tried."""
-        for i in self.rng.permutation(len(plans)).tolist():
-            plan = plans[i]
-            if len(plan.nodes) < 3 or (plan.nodes[0], plan.nodes[2]) in self.tried:
-                continue
-            if any(a is None for a in plan.actions[:2]):
-                continue
-            first, second = (task.action_to_array(a) for a in plan.actions[:2])
-            one = task.spec.action.chain(first, second)
-            if one is None:
-                continue
-            self.tried.add((plan.nodes[0], plan.nodes[2]))
-            shortcut = self.planner.skip_first(plan)
-            if np.array_equal(task.action_to_array(shortcut.actions[0]), one):
-                return shortcut
-        return None
+        self.last_was_shortcut = True
+        return [self.planner.skip_first(options[pair])]
 
 
 @dataclass

@@ -124,24 +124,6 @@ class ArraySpec:
                 f"{self.start}..{self.start + self.counts[col] - 1}"
             )
 
-    def chain(self, first: np.ndarray, second: np.ndarray) -> np.ndarray | None:
-        """Two pick-and-place actions as one, where the second picks where the first released
-        (one object moved twice could have gone straight): the second with the first's pick.
-        None for a spec without `pick.*` and `release.*` elements in matching order, for
-        actions that do not chain, and where the one action would release where it picks."""
-        picks = [i for i, n in enumerate(self.names) if n.startswith("pick.")]
-        releases = [i for i, n in enumerate(self.names) if n.startswith("release.")]
-        if not picks or [self.names[i][5:] for i in picks] != [self.names[i][8:] for i in releases]:
-            return None
-        a, b = np.asarray(first).reshape(-1), np.asarray(second).reshape(-1)
-        if (a == NULL).all() or (b == NULL).all() or (b[picks] != a[releases]).any():
-            return None
-        out = b.copy()
-        out[picks] = a[picks]
-        if (out[picks] == out[releases]).all():
-            return None
-        return out.reshape(self.shape)
-
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "dtype": self.dtype,

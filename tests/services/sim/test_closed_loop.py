@@ -316,9 +316,6 @@ def test_skip_first_asks_the_apn_for_the_first_node_to_the_third():
     assert skipped.supports[0] == 0 and len(skipped.confidences) == len(skipped.actions)
     with pytest.raises(ValueError, match="two steps"):
         planner.skip_first(VisualActionPlan(path[:2], [], plan.actions[:1], [0.9], [1]))
-    known = planner.known_actions(path[0])  # the edge the plan takes first is among them
-    assert len(known) == len(roadmap.neighbours(path[0]))
-    assert any(np.array_equal(k, arrays[0]) for k in known)
 
 
 def test_an_action_budget_cuts_the_last_task_short_and_starts_no_more(world):
@@ -331,38 +328,3 @@ def test_an_action_budget_cuts_the_last_task_short_and_starts_no_more(world):
     )
     assert result["pairs"] == 3 and result["illegal_actions"] == 7
     assert result["actions_executed"] == 0 and result["success"] == 0.0
-
-
-def test_informed_tries_a_chained_shortcut_first_and_never_a_known_move(world):
-    task = world.task
-    x_to_y, y_to_z = Move(Cell(1, 0), Cell(1, 1)), Move(Cell(1, 1), Cell(1, 2))  # one box twice
-    other = Move(Cell(0, 2), Cell(2, 1))  # another box
-    image = np.zeros((8, 8, 3), np.uint8)
-    unchained = VisualActionPlan([0, 1, 2], [], [x_to_y, other], [0.9] * 2, [1] * 2)
-    chained = VisualActionPlan([0, 3, 4], [], [x_to_y, y_to_z], [0.9] * 2, [1] * 2)
-
-    class Apn(FixedPlanner):
-        straight = Move(Cell(1, 0), Cell(1, 2))
-        known: tuple[Move, ...] = ()
-
-        def skip_first(self, plan):
-            return VisualActionPlan(plan.nodes[::2], [], [self.straight], [0.9], [0])
-
-        def known_actions(self, node):
-            return np.array([task.action_to_array(m) for m in self.known]).reshape(-1, 4)
-
-    for seed in range(5):  # whatever the draw, the sure one first, then a guess
-        trying = TryShortcuts(Apn([unchained, chained]), 1.0, seed, task=task)
-        assert trying.plan(image, image)[0].nodes == [0, 4] and trying.sure == 1
-        assert trying.plan(image, image)[0].nodes == [0, 2] and trying.tries == 2
-        assert trying.sure == 1 and trying.tried == {(0, 2), (0, 4)}
-    wrong = Apn([chained])
-    wrong.straight = other  # the APN sees another move: no sure one, and nothing left to guess
-    doubting = TryShortcuts(wrong, 1.0, task=task)
-    assert doubting.plan(image, image) == [chained] and not doubting.last_was_shortcut
-    assert doubting.tried == {(0, 4)} and doubting.tries == 0
-    walked = Apn([unchained])
-    walked.known = (x_to_y, Apn.straight)  # the guess would re-walk an edge: not tried
-    knowing = TryShortcuts(walked, 1.0, task=task)
-    assert knowing.plan(image, image) == [unchained] and knowing.tries == 0
-    assert TryShortcuts(walked, 1.0).plan(image, image)[0].nodes == [0, 2]  # uninformed: tried

@@ -66,24 +66,3 @@ def test_spec_json_errors_name_the_part():
         TaskSpec.from_json({"task": "x", "action": {"shape": [1]}, "state": None})
     with pytest.raises(SpecError, match="'task'"):
         TaskSpec.from_json([])
-
-
-def test_pick_and_place_actions_chain_when_the_second_picks_what_the_first_released():
-    from shared.tasks import get_task
-
-    task = get_task("box_stacking")
-    start = task.parse_state({"stacks": [["red", "green"], ["blue"], ["yellow"]]})
-    first, middle = next((m, s) for m, s in task.neighbours(start) if m.pick.col == 0)
-    spec, a1 = task.spec.action, task.action_to_array(first)
-    for second, end in task.neighbours(middle):
-        one = spec.chain(a1, task.action_to_array(second))
-        if end == start:  # moved back: no action
-            assert one is None
-        elif task.action_to_array(second)[:2].tolist() == a1[2:].tolist():  # the same box again
-            assert task.apply(start, task.array_to_action(one)) == end
-        else:
-            assert one is None
-    null = task.action_to_array(None)
-    assert spec.chain(a1, null) is None and spec.chain(null, a1) is None
-    plain = ArraySpec(dtype="int8", shape=(2,), names=("a", "b"), counts=(3, 3))
-    assert plain.chain(np.array([0, 1]), np.array([1, 2])) is None  # no pick and release
