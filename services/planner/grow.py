@@ -345,13 +345,17 @@ def _representative(points: np.ndarray, ids: np.ndarray, metric: str) -> int:
     return int(ids[np.argmin(pair_distances(points[ids], mean, metric))])
 
 
+OWN_NODE_MIN = 0.9  # share of built images nearest their own node, for data to be the roadmap's
+
+
 def load_members(
     model_dir: Path, vae: VAE, data_dir: Path | str | None = None, folder: Path | None = None
 ) -> Members:
     """The members of a roadmap version (default: the current one); a roadmap built before
     they were kept encodes its training data (`data_dir`, else the VAE's recorded path) once."""
     folder = folder or versions.roadmap_dir(model_dir)
-    points = len(Roadmap.load(folder).point_node)
+    roadmap = Roadmap.load(folder)
+    points = len(roadmap.point_node)
     if (folder / MEMBERS).is_file():
         members = Members.load(folder)
         if len(members.points) != points:
@@ -366,6 +370,17 @@ def load_members(
         raise ValueError(
             f"{path}: {len(members.points)} images, the roadmap in {folder} was built on "
             f"{points}; give the model's training data with --data"
+        )
+    # Same count, other images (data generated again with other options): a roadmap's built
+    # images lie nearest their own node (all of them for every model here), others do not
+    # (0.6% for the box data generated with --starts balanced instead of random).
+    kept = roadmap.point_node >= 0
+    own = np.atleast_1d(roadmap.nearest_node(members.points[kept])) == roadmap.point_node[kept]
+    if kept.any() and own.mean() < OWN_NODE_MIN:
+        raise ValueError(
+            f"{path}: only {100 * own.mean():.1f}% of its images lie nearest the node the "
+            f"roadmap in {folder} gave them: not the data it was built on; give the model's "
+            "training data with --data (its REPORT.md says how it was generated)"
         )
     return members
 

@@ -143,3 +143,20 @@ def test_exploration_heads_for_neither_its_twin_nor_a_neighbour():
     rng = np.random.default_rng(0)
     picked = {_target(roadmap, np.zeros(5, int), nodes[0], 0, 1.0, rng) for _ in range(40)}
     assert picked == {3, 4}
+
+
+def test_members_are_encoded_only_from_the_data_the_roadmap_was_built_on(
+    model, tiny_model, tmp_path
+):
+    from services.encoder.checkpoint import load_vae
+    from services.planner.grow import load_members
+    from services.planner.members import MEMBERS
+    from services.sim.datagen import GenerateConfig, generate
+
+    (versions.roadmap_dir(model) / MEMBERS).unlink()  # a roadmap built before they were kept
+    vae, _ = load_vae(model / "vae")
+    assert len(load_members(model, vae, tiny_model[1]).points) == 120
+    other = tmp_path / "other"  # as many tuples, other images: the data generated again
+    generate(GenerateConfig(pairs=60, seed=2, image_size=32, workers=1), other, progress=False)
+    with pytest.raises(ValueError, match="not the data it was built on"):
+        load_members(model, vae, other)
