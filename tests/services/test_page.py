@@ -250,3 +250,18 @@ def test_a_stopped_service_shows_as_down_within_seconds(page, stack):
     expect(page.locator("#health-status")).to_contain_text("apn")
     stack.start_service("apn")
     expect(apn).not_to_have_class("down", timeout=60_000)
+
+
+def test_the_roadmap_is_drawn_again_once_no_planner_serves_the_version_drawn(page):
+    page, _ = page
+    expect(page.locator("#roadmap-info")).to_contain_text("roadmap v1")
+
+    def grown(route):  # the planners now say they plan with v2
+        body = route.fetch().json()
+        for instance in body["services"]["planner"]["instances"]:
+            instance["roadmap_version"] = "v2"
+        route.fulfill(json=body)
+
+    with page.expect_request(lambda r: r.url.endswith("/tasks/box_stacking/roadmap")):
+        page.route("**/health", grown)
+    expect(page.locator("#health-services [data-service=planner]")).to_contain_text("roadmap v2")

@@ -4,7 +4,8 @@
 const $ = (id) => document.getElementById(id);
 const SVG = "http://www.w3.org/2000/svg";
 const BOX_COLOURS = { red: "#d92d20", green: "#2e9d4f", blue: "#2563eb", yellow: "#e0a800" };
-const ui = { task: null, info: null, graph: null, ends: {}, plans: [], selected: 0, healthTimer: null };
+const ui = { task: null, info: null, graph: null, ends: {}, plans: [], selected: 0, healthTimer: null,
+  roadmapLoading: false };
 
 // --- small helpers ------------------------------------------------------------------------
 function el(tag, attrs = {}, ...children) {
@@ -549,13 +550,16 @@ async function pollHealth() {
     pill.textContent = body.status === "ok" ? "all services up" :
       body.status === "inconsistent" ? "services serve different models" : (body.detail || "unavailable");
     list.replaceChildren(...Object.entries(body.services).map(([name, s]) => {
-      const perTask = new Map();  // task -> [replicas, model ids]
+      const perTask = new Map();  // task -> [replicas, model ids, roadmap versions]
       for (const i of s.instances) {
-        const [count, models] = perTask.get(i.task) || [0, new Set()];
-        perTask.set(i.task, [count + 1, models.add(i.model_id.slice(0, 8))]);
+        const [count, models, versions] = perTask.get(i.task) || [0, new Set(), new Set()];
+        if (i.roadmap_version) versions.add(i.roadmap_version);
+        perTask.set(i.task, [count + 1, models.add(i.model_id.slice(0, 8)), versions]);
       }
-      const tasks = [...perTask].map(([task, [count, models]]) =>
-        `${task} ×${count} (model ${[...models].join("/")})`);
+      const tasks = [...perTask].map(([task, [count, models, versions]]) =>
+        `${task} ×${count} (model ${[...models].join("/")}` +
+        (versions.size ? `, roadmap ${[...versions].join("/")})` : ")"));
+      if (name === "planner") followRoadmap(perTask.get(ui.task)?.[2]);
       const text = `${name} ${s.status === "ok" ? "up" : "DOWN"}` +
         (tasks.length ? ": " + tasks.join(", ") : ": no replica");
       return el("li", { class: s.status === "ok" ? "" : "down", text, "data-service": name });
@@ -568,6 +572,14 @@ async function pollHealth() {
     clearTimeout(timer);
     ui.healthTimer = setTimeout(pollHealth, 2000);
   }
+}
+
+// A growing roadmap: once no planner of this task serves the version drawn, draw the new one.
+function followRoadmap(versions) {
+  const drawn = ui.graph?.roadmap_version;
+  if (!drawn || !versions || !versions.size || versions.has(drawn) || ui.roadmapLoading) return;
+  nodeImages.clear();  // a grown node's id may stand for another image in another version
+  loadRoadmap();
 }
 
 // --- the roadmap picture -----------------------------------------------------------------------------
@@ -590,6 +602,7 @@ async function loadRoadmap() {
   svg.replaceChildren();
   ui.graph = null;
   $("roadmap-info").textContent = "Loading the roadmap…";
+  ui.roadmapLoading = true;
   try {
     const reply = await api("GET", `/tasks/${encodeURIComponent(ui.task)}/roadmap`);
     ui.graph = await reply.json();
@@ -597,13 +610,16 @@ async function loadRoadmap() {
     $("roadmap-info").textContent = "";
     showError(err, "task-error");
     return;
+  } finally {
+    ui.roadmapLoading = false;
   }
   const g = ui.graph;
   const known = g.nodes.filter((n) => n.state).length;
   const twinLinks = g.twins ?? [];
   const twins = twinLinks.length ? `, ${twinLinks.length} twin links (dashed)` : "";
+  const version = g.roadmap_version ? `, roadmap ${g.roadmap_version}` : "";
   $("roadmap-info").textContent = `${g.nodes.length} nodes, ${g.edges.length} edges${twins} (model ` +
-    `${g.model_id.slice(0, 8)}; layout: ${g.layout}; ${known} nodes with a known state).`;
+    `${g.model_id.slice(0, 8)}${version}; layout: ${g.layout}; ${known} nodes with a known state).`;
   Object.assign(view, { x: 0, y: 0, w: 1000, h: 700 });
   setView();
   const pos = (n) => [g.nodes[n].x * 1000, g.nodes[n].y * 700];
