@@ -48,6 +48,7 @@ class RobotPlanner:
         self.timeout_s = timeout_s
         self._plans: queue.Queue[dict[str, Any]] = queue.Queue()
         self._reports: list[dict[str, Any]] = []  # experience not yet sent
+        self.reported = 0  # tuples the gateway recorded
         self.subscriber = session.declare_subscriber(
             robot_plan_key(robot_id),
             lambda sample: self._plans.put(json.loads(sample.payload.to_bytes())),
@@ -146,6 +147,7 @@ class RobotPlanner:
         key = experience_key(self.task_name)
         for reply in self.session.get(key, payload=json.dumps(body), encoding=JSON, timeout=5.0):
             if reply.ok is not None:
+                self.reported += len(body["tuples"])
                 return json.loads(reply.ok.payload.to_bytes())["total"]
             log.warning("%s: experience not recorded: %s", key, reply.err.payload.to_bytes()[:200])
             return None
@@ -195,3 +197,5 @@ def run_robot(
     finally:
         planner.flush()
         planner.close()
+        if report:
+            print(f"[{robot_id}] {planner.reported} experience tuples recorded", flush=True)

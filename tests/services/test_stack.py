@@ -398,6 +398,7 @@ def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
     steps = result.stdout.count("[r2] step ")
     recorded = load_dataset(Path(stack.config.env["LSR_EXPERIENCE_DIR"]) / "box_stacking")
     assert int(recorded.a.sum()) == steps >= 5
+    assert f"[r2] {len(recorded)} experience tuples recorded" in result.stdout
     state = TASK.parse_state(START)
     for u in recorded.u[recorded.a == 1]:
         state = TASK.apply(state, TASK.array_to_action(u))  # the actions as executed, in order
