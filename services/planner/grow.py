@@ -45,7 +45,7 @@ from services.planner.build import LABELS
 from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, load_calibration, match, save_calibration
-from services.planner.members import MEMBERS, Members
+from services.planner.members import MEMBERS, Members, tuple_keys
 from services.planner.regions import CDIST_NAME, connected_regions
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, pair_distances
 from shared.checkpoint import seal
@@ -386,13 +386,22 @@ def load_members(
 
 
 def _experience(
-    vae: VAE, task: Task, folders: list[Path], size: int, used: dict[str, int]
-) -> tuple[Members, list[Dataset], dict[str, int]]:
-    """The tuples of each folder that the roadmap has not grown from yet (`used`: tuples
-    already taken, by resolved path), encoded; and the new counts."""
+    vae: VAE,
+    task: Task,
+    folders: list[Path],
+    size: int,
+    used: dict[str, int],
+    known: np.ndarray,
+) -> tuple[Members, list[Dataset], dict[str, int], int]:
+    """The tuples of each folder that the roadmap has not grown from yet, encoded; the new
+    counts; how many were skipped as tuples the roadmap already holds. A folder's tuples
+    already taken are skipped by path (`used`: their count, by resolved path), any other
+    tuple by its content (`known`: the members' keys), so that a copy counts once too."""
     parts: list[Members] = []
     found: list[Dataset] = []
     taken = dict(used)
+    seen = {int(k) for k in known if k}
+    again = 0
     for folder in folders:
         data = load_dataset(folder)
         if data.task != task.name or data.spec.action != task.spec.action:
@@ -406,17 +415,27 @@ def _experience(
         taken[key] = len(data)
         if start >= len(data):
             continue
-        part = Dataset(data.manifest, *(getattr(data, f)[start:] for f in FIELDS))
+        keys = tuple_keys(data.image1[start:], data.image2[start:], data.u[start:])
+        fresh = np.zeros(len(keys), bool)
+        for i, key in enumerate(keys.tolist()):
+            fresh[i] = key not in seen
+            seen.add(key)
+        again += int((~fresh).sum())
+        if not fresh.any():
+            continue
+        keep = start + np.flatnonzero(fresh)
+        part = Dataset(data.manifest, *(getattr(data, f)[keep] for f in FIELDS))
         parts.append(Members.encode(vae, part))
         found.append(part)
     if not parts:
+        held = f" ({again} of its tuples the roadmap already holds: a copy?)" if again else ""
         raise ValueError(
-            f"nothing new in {[str(f) for f in folders]}: the roadmap grew from all of it"
+            f"nothing new in {[str(f) for f in folders]}: the roadmap grew from all of it{held}"
         )
     total = parts[0]
     for part in parts[1:]:
         total = total + part
-    return total, found, taken
+    return total, found, taken, again
 
 
 def grow_model(
@@ -444,8 +463,11 @@ def _grow_model(
     members = load_members(model_dir, vae, data_dir, folder)
     size = config["model"]["image_size"]
     used = roadmap.stats.get("experience", {})
-    new, datasets, used = _experience(vae, task, [Path(f) for f in experience], size, used)
+    new, datasets, used, again = _experience(
+        vae, task, [Path(f) for f in experience], size, used, members.keys
+    )
     grown, calibration, everything, report = grow(roadmap, calibration, members, new, task)
+    report["already_held"] = again
     grown.stats["experience"] = used
 
     name = versions.next_version(model_dir)

@@ -6,6 +6,7 @@ and the true states where known, in the roadmap's point order (z1[0], z2[0], z1[
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
@@ -37,6 +38,17 @@ def interleave(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     return np.stack([first, second], axis=1).reshape(-1, *first.shape[1:])
 
 
+def tuple_keys(image1: np.ndarray, image2: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(N,) uint64: a 64-bit digest of each tuple's two images and action (never 0)."""
+    keys = np.empty(len(u), np.uint64)
+    for i in range(len(u)):
+        digest = hashlib.blake2b(digest_size=8)
+        for part in (image1[i], image2[i], u[i]):
+            digest.update(np.ascontiguousarray(part).tobytes())
+        keys[i] = max(1, int.from_bytes(digest.digest(), "little"))
+    return keys
+
+
 @dataclass
 class Members:
     """The points a roadmap was built from, in its point order."""
@@ -48,6 +60,9 @@ class Members:
     states: np.ndarray  # (2N, *state shape): the true states where known
     has_state: np.ndarray  # (2N,) uint8: 1 where the recorder knew the state
     experience: np.ndarray  # (N,) uint8: 1 for a tuple grown from experience, 0 for training
+    # (N,) uint64: each tuple's content (tuple_keys), so that a copy of experience already grown
+    # is known as such; 0 where unknown (members kept before the keys were)
+    keys: np.ndarray
 
     def save(self, folder: Path) -> None:
         arrays = {f.name: np.ascontiguousarray(getattr(self, f.name)) for f in fields(self)}
@@ -59,6 +74,8 @@ class Members:
             arrays = load_file(str(folder / MEMBERS))
         except Exception as exc:  # safetensors raises its own error types for corrupt files
             raise RoadmapError(f"{folder / MEMBERS}: not a readable safetensors file") from exc
+        if "keys" not in arrays and "a" in arrays:
+            arrays["keys"] = np.zeros(len(arrays["a"]), np.uint64)
         missing = [f.name for f in fields(cls) if f.name not in arrays]
         if missing:
             raise RoadmapError(f"{folder / MEMBERS}: missing arrays {', '.join(missing)}")
@@ -96,6 +113,7 @@ class Members:
             states=interleave(*states) if states is not None else np.zeros((2 * n, 0), np.int8),
             has_state=np.full(2 * n, states is not None, np.uint8),
             experience=np.zeros(n, np.uint8),
+            keys=tuple_keys(image1, image2, u),
         )
 
     def __add__(self, other: Members) -> Members:

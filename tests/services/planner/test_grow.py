@@ -36,6 +36,7 @@ def members(rows: list[tuple[str, str, int]], seed: int) -> Members:
         states=np.zeros((len(points), 0), np.int8),
         has_state=np.zeros(len(points), np.uint8),
         experience=np.zeros(len(rows), np.uint8),
+        keys=np.zeros(len(rows), np.uint64),
     )
 
 
@@ -206,3 +207,16 @@ def test_an_image_without_a_node_joins_its_no_action_partners_node():
     assert report["images_joined_by_partner"] == 1 and new[1] == b
     assert report["new_nodes"] == 1 and (new[[3, 5, 6, 7]] == roadmap.num_nodes).all()
     assert report["held_for_review"] == 0
+
+
+def test_members_kept_before_tuple_keys_load_with_keys_unknown(tmp_path):
+    from safetensors.numpy import load_file, save_file
+
+    from services.planner.members import MEMBERS
+
+    kept = members([("A", "B", 1), ("B", "B", 0)], seed=0)
+    kept.save(tmp_path)
+    arrays = load_file(str(tmp_path / MEMBERS))
+    del arrays["keys"]
+    save_file(arrays, str(tmp_path / MEMBERS))
+    assert Members.load(tmp_path).keys.tolist() == [0, 0]

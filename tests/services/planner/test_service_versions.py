@@ -9,6 +9,7 @@ import numpy as np
 from services.planner import service as planner_service
 from services.planner.grow import grow_model
 from services.runtime import ModelInfo, ServiceContext
+from services.sim.datagen import GenerateConfig, generate
 from shared.messages import PathsReply, PathsRequest, WireArray, pack
 from shared.settings import Settings
 
@@ -18,6 +19,8 @@ def test_a_grown_version_is_taken_under_load_without_a_failed_request(
 ):
     model = tmp_path / "model"
     shutil.copytree(tiny_model[0], model)
+    experience = tmp_path / "experience"  # new tuples (its training data it holds already)
+    generate(GenerateConfig(pairs=20, seed=7, image_size=32, workers=1), experience, progress=False)
     monkeypatch.setattr(planner_service, "RELOAD_S", 0.05)
     info = ModelInfo.read(model)
     context = ServiceContext("planner", "x", info, None, Settings())
@@ -48,7 +51,7 @@ def test_a_grown_version_is_taken_under_load_without_a_failed_request(
     caller = threading.Thread(target=load)
     caller.start()
     try:
-        grow_model(model, [tiny_model[1]])
+        grow_model(model, [experience])
         for _ in range(400):  # the watcher looks every 0.05 s
             if seen and seen[-1] == "v2":
                 break

@@ -80,13 +80,21 @@ def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
 
     with pytest.raises(ValueError, match="nothing new"):
         grow_model(model, [experience])  # the same tuples never count twice
+    copy = tmp_path / "copy"  # nor from a copy (exported and imported, moved, ...)
+    shutil.copytree(experience, copy)
+    with pytest.raises(ValueError, match=f"{len(data)} of its tuples the roadmap already holds"):
+        grow_model(model, [copy])
+    ExperienceLog(copy, task.spec, 32).append(
+        data.image2[:1], data.image2[:1], data.u[:1] * 0 - 1, data.state2[:1], data.state2[:1]
+    )  # one new tuple (a look again) in the copy: only it is taken
+    assert grow_model(model, [copy])["tuples"] == 1
     with pytest.raises(ValueError, match="grown roadmap versions"):
         build_from_dataset(
             model / "vae", tiny_model[1], RoadmapConfig(min_samples=1), model / "roadmap"
         )  # a rebuild would go on planning with v2
     versions.make_current(model, "v1")  # a roll-back
     assert ActionPlanner.from_model_dir(model).planner.roadmap.num_nodes == before.num_nodes
-    assert versions.versions(model) == ["v1", "v2"]
+    assert versions.versions(model) == ["v1", "v2", "v3"]
 
 
 def test_exploration_spends_its_budget_in_the_simulator_and_grows_a_version(model, tmp_path):
