@@ -51,8 +51,10 @@ def cmd_versions(args: argparse.Namespace) -> int:
 
     if args.use:
         versions.make_current(args.model, args.use)
+    deleted = versions.prune(args.model, args.keep) if args.keep is not None else []
     current = versions.current_version(args.model)
-    print(json.dumps({"current": current, "versions": versions.versions(args.model)}))
+    listing = {"current": current, "versions": versions.versions(args.model)}
+    print(json.dumps(listing | ({"deleted": deleted} if args.keep is not None else {})))
     return 0
 
 
@@ -132,6 +134,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     listing = verbs.add_parser("versions", help="the versions a model keeps, and which plans")
     listing.add_argument("--model", required=True, type=Path)
     listing.add_argument("--use", help="make this version current (v1, v2, ...): a roll-back")
+    listing.add_argument(
+        "--keep",
+        type=int,
+        help="delete grown versions but the KEEP newest (v1 and the current one always stay)",
+    )
     listing.set_defaults(handler=cmd_versions)
 
     explore = sub.add_parser(

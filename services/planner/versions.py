@@ -107,3 +107,22 @@ def make_current(model_dir: Path | str, name: str) -> None:
     version_dir(model_dir, name)  # exists
     pointer = Path(model_dir) / BASE / CURRENT
     replace_atomically(pointer, lambda tmp: tmp.write_text(name + "\n"))
+
+
+def prune(model_dir: Path | str, keep: int) -> list[str]:
+    """Delete grown versions beyond the `keep` newest, never v1 or the current one (a roll-back
+    target a person chose stays until made current no more); the names deleted. Under the
+    growth lock, and each moved aside before it is deleted, so no reader sees half of one:
+    running planners hold their version in memory."""
+    if keep < 0:
+        raise ValueError(f"keep must be >= 0, got {keep}")
+    with growing(model_dir):
+        current = current_version(model_dir)
+        grown = [n for n in versions(model_dir) if n not in (FIRST, current)]
+        doomed = grown[: max(0, len(grown) - keep)]
+        for name in doomed:
+            folder = version_dir(model_dir, name)
+            aside = folder.with_name(f".{name}.deleting")
+            folder.rename(aside)
+            shutil.rmtree(aside)
+    return doomed
