@@ -110,10 +110,9 @@ def make_current(model_dir: Path | str, name: str) -> None:
 
 
 def prune(model_dir: Path | str, keep: int) -> list[str]:
-    """Delete grown versions beyond the `keep` newest, never v1 or the current one (a roll-back
-    target a person chose stays until made current no more); the names deleted. Under the
-    growth lock, and each moved aside before it is deleted, so no reader sees half of one:
-    running planners hold their version in memory."""
+    """Delete grown versions beyond the `keep` newest, never v1 or the current one; the names
+    deleted. Under the growth lock, and each moved aside before it is deleted, so no reader
+    finds half of one (running planners hold their version in memory)."""
     if keep < 0:
         raise ValueError(f"keep must be >= 0, got {keep}")
     with growing(model_dir):
