@@ -125,6 +125,11 @@ def read_shard(path: Path) -> dict[str, np.ndarray]:
 
 def read_manifest(directory: Path | str) -> dict[str, Any]:
     path = Path(directory) / "manifest.json"
+    if not path.is_file() and Path(directory).is_dir():
+        inside = sorted(p.parent.name for p in Path(directory).glob("*/manifest.json"))
+        if inside:  # an import's folder: OUT/train, OUT/test
+            hint = ", ".join(str(Path(directory) / name) for name in inside)
+            raise DatasetError(f"{path}: missing; the datasets are one level down: {hint}")
     return read_versioned_json(path, FORMAT, VERSION, "a dataset", DatasetError)
 
 

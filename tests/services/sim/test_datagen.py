@@ -98,6 +98,9 @@ def test_corruption_is_detected(tmp_path):
 def test_not_a_dataset(tmp_path):
     with pytest.raises(DatasetError, match="no manifest"):
         load_dataset(tmp_path)
+    _generate(tmp_path / "imported" / "train", pairs=4)  # as `lsr data import` writes OUT/train
+    with pytest.raises(DatasetError, match=r"one level down: .*imported/train"):
+        load_dataset(tmp_path / "imported")
     (tmp_path / "manifest.json").write_text(json.dumps({"format": "other"}))
     with pytest.raises(DatasetError, match="format"):
         load_dataset(tmp_path)
