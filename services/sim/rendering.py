@@ -11,6 +11,22 @@ import mujoco
 import numpy as np
 
 
+def _let_go() -> None:
+    """Leave no EGL context current in this thread. MuJoCo's renderer makes its context current
+    and keeps it so; a service's worker thread that rendered last then holds it, and freeing
+    the renderer from any other thread (at exit, by the garbage collector) fails with
+    EGL_BAD_ACCESS. Each render makes it current again."""
+    if os.environ.get("MUJOCO_GL") != "egl":
+        return
+    from mujoco import egl
+    from OpenGL import EGL
+
+    if egl.EGL_DISPLAY is not None:
+        EGL.eglMakeCurrent(
+            egl.EGL_DISPLAY, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT
+        )
+
+
 class OffscreenCamera:
     """A fixed camera rendering square uint8 images of one model."""
 
@@ -23,10 +39,13 @@ class OffscreenCamera:
         flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False  # shadows cost 3-4x
         flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
         flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = False
+        _let_go()
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
         self.renderer.update_scene(data, camera=self.camera)
-        return self.renderer.render().copy()
+        image = self.renderer.render().copy()
+        _let_go()
+        return image
 
     def close(self) -> None:
         self.renderer.close()
