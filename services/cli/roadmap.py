@@ -50,7 +50,8 @@ def cmd_versions(args: argparse.Namespace) -> int:
     from services.planner import versions
 
     if args.use:
-        versions.make_current(args.model, args.use)
+        with versions.growing(args.model):  # not while a growth publishes or a prune deletes
+            versions.make_current(args.model, args.use)
     deleted = versions.prune(args.model, args.keep) if args.keep is not None else []
     current = versions.current_version(args.model)
     listing = {"current": current, "versions": versions.versions(args.model)}
@@ -137,7 +138,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     listing.add_argument(
         "--keep",
         type=int,
-        help="delete grown versions but the KEEP newest (v1 and the current one always stay)",
+        help="delete grown versions but the KEEP newest (v1, the current and the newest stay)",
     )
     listing.set_defaults(handler=cmd_versions)
 

@@ -375,8 +375,10 @@ def load_members(
     # images lie nearest their own node (all of them for every model here), others do not
     # (0.6% for the box data generated with --starts balanced instead of random).
     kept = roadmap.point_node >= 0
+    if not kept.any():
+        return members
     own = np.atleast_1d(roadmap.nearest_node(members.points[kept])) == roadmap.point_node[kept]
-    if kept.any() and own.mean() < OWN_NODE_MIN:
+    if own.mean() < OWN_NODE_MIN:
         raise ValueError(
             f"{path}: only {100 * own.mean():.1f}% of its images lie nearest the node the "
             f"roadmap in {folder} gave them: not the data it was built on; give the model's "
@@ -417,9 +419,9 @@ def _experience(
             continue
         keys = tuple_keys(data.image1[start:], data.image2[start:], data.u[start:])
         fresh = np.zeros(len(keys), bool)
-        for i, key in enumerate(keys.tolist()):
-            fresh[i] = key not in seen
-            seen.add(key)
+        for i, content in enumerate(keys.tolist()):
+            fresh[i] = content not in seen
+            seen.add(content)
         again += int((~fresh).sum())
         if not fresh.any():
             continue
@@ -428,7 +430,7 @@ def _experience(
         parts.append(Members.encode(vae, part))
         found.append(part)
     if not parts:
-        held = f" ({again} of its tuples the roadmap already holds: a copy?)" if again else ""
+        held = f" ({again} tuples it holds already or twice: a copy?)" if again else ""
         raise ValueError(
             f"nothing new in {[str(f) for f in folders]}: the roadmap grew from all of it{held}"
         )

@@ -110,15 +110,17 @@ def make_current(model_dir: Path | str, name: str) -> None:
 
 
 def prune(model_dir: Path | str, keep: int) -> list[str]:
-    """Delete grown versions beyond the `keep` newest, never v1 or the current one; the names
-    deleted. Under the growth lock, and each moved aside before it is deleted, so no reader
-    finds half of one (running planners hold their version in memory)."""
+    """Delete grown versions beyond the `keep` newest, never v1, the current one or the
+    highest-numbered one (so that no name is ever given to two versions: planners and viewers
+    tell versions apart by name); the names deleted. Under the growth lock, and each moved
+    aside before it is deleted, so no reader finds half of one (running planners hold their
+    version in memory)."""
     if keep < 0:
         raise ValueError(f"keep must be >= 0, got {keep}")
     with growing(model_dir):
-        current = current_version(model_dir)
-        grown = [n for n in versions(model_dir) if n not in (FIRST, current)]
-        doomed = grown[: max(0, len(grown) - keep)]
+        current, every = current_version(model_dir), versions(model_dir)
+        grown = [n for n in every if n not in (FIRST, current, every[-1])]
+        doomed = grown[: max(0, len(grown) - max(0, keep - 1))]
         for name in doomed:
             folder = version_dir(model_dir, name)
             aside = folder.with_name(f".{name}.deleting")

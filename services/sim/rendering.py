@@ -42,10 +42,11 @@ class OffscreenCamera:
         _let_go()
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
-        self.renderer.update_scene(data, camera=self.camera)
-        image = self.renderer.render().copy()
-        _let_go()
-        return image
+        try:
+            self.renderer.update_scene(data, camera=self.camera)
+            return self.renderer.render().copy()
+        finally:
+            _let_go()
 
     def close(self) -> None:
         self.renderer.close()

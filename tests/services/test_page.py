@@ -255,6 +255,10 @@ def test_a_stopped_service_shows_as_down_within_seconds(page, stack):
 def test_the_roadmap_is_drawn_again_once_no_planner_serves_the_version_drawn(page):
     page, _ = page
     expect(page.locator("#roadmap-info")).to_contain_text("roadmap v1")
+    asked = []  # while the planners serve the version drawn, it is not asked for again
+    page.on("request", lambda r: asked.append(r.url) if r.url.endswith("/roadmap") else None)
+    page.wait_for_timeout(4500)  # two health polls
+    assert asked == []
 
     def grown(route):  # the planners now say they plan with v2
         body = route.fetch().json()

@@ -5,7 +5,7 @@ const $ = (id) => document.getElementById(id);
 const SVG = "http://www.w3.org/2000/svg";
 const BOX_COLOURS = { red: "#d92d20", green: "#2e9d4f", blue: "#2563eb", yellow: "#e0a800" };
 const ui = { task: null, info: null, graph: null, ends: {}, plans: [], selected: 0, healthTimer: null,
-  roadmapLoading: false };
+  roadmapLoading: false, roadmapLoads: 0, roadmapRetry: false };
 
 // --- small helpers ------------------------------------------------------------------------
 function el(tag, attrs = {}, ...children) {
@@ -574,10 +574,12 @@ async function pollHealth() {
   }
 }
 
-// A growing roadmap: once no planner of this task serves the version drawn, draw the new one.
+// A growing roadmap: once no planner of this task serves the version drawn, draw the new one
+// (and try again after a load that failed, say during the switch).
 function followRoadmap(versions) {
+  if (!ui.task || ui.roadmapLoading || !versions || !versions.size) return;
   const drawn = ui.graph?.roadmap_version;
-  if (!drawn || !versions || !versions.size || versions.has(drawn) || ui.roadmapLoading) return;
+  if (ui.graph ? !drawn || versions.has(drawn) : !ui.roadmapRetry) return;
   nodeImages.clear();  // a grown node's id may stand for another image in another version
   loadRoadmap();
 }
@@ -602,16 +604,21 @@ async function loadRoadmap() {
   svg.replaceChildren();
   ui.graph = null;
   $("roadmap-info").textContent = "Loading the roadmap…";
+  const load = ++ui.roadmapLoads;  // a later load (another task, say) supersedes this one
   ui.roadmapLoading = true;
   try {
     const reply = await api("GET", `/tasks/${encodeURIComponent(ui.task)}/roadmap`);
-    ui.graph = await reply.json();
+    const graph = await reply.json();
+    if (load !== ui.roadmapLoads) return;
+    ui.graph = graph;
   } catch (err) {
+    if (load !== ui.roadmapLoads) return;
+    ui.roadmapRetry = ![401, 403, 404].includes(err.status);  // a key or a task: no retry
     $("roadmap-info").textContent = "";
     showError(err, "task-error");
     return;
   } finally {
-    ui.roadmapLoading = false;
+    if (load === ui.roadmapLoads) ui.roadmapLoading = false;
   }
   const g = ui.graph;
   const known = g.nodes.filter((n) => n.state).length;

@@ -82,7 +82,7 @@ def test_the_closed_loop_records_what_it_did_and_the_roadmap_grows_from_it(
         grow_model(model, [experience])  # the same tuples never count twice
     copy = tmp_path / "copy"  # nor from a copy (exported and imported, moved, ...)
     shutil.copytree(experience, copy)
-    with pytest.raises(ValueError, match=f"{len(data)} of its tuples the roadmap already holds"):
+    with pytest.raises(ValueError, match=f"{len(data)} tuples it holds already or twice"):
         grow_model(model, [copy])
     ExperienceLog(copy, task.spec, 32).append(
         data.image2[:1], data.image2[:1], data.u[:1] * 0 - 1, data.state2[:1], data.state2[:1]
