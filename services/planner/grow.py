@@ -427,7 +427,7 @@ def _experience(
             continue
         keep = start + np.flatnonzero(fresh)
         part = Dataset(data.manifest, *(getattr(data, f)[keep] for f in FIELDS))
-        parts.append(Members.encode(vae, part))
+        parts.append(Members.encode(vae, part, keys[fresh]))
         found.append(part)
     if not parts:
         held = f" ({again} tuples it holds already or twice: a copy?)" if again else ""

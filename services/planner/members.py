@@ -82,10 +82,10 @@ class Members:
         return cls(**{f.name: arrays[f.name] for f in fields(cls)})
 
     @classmethod
-    def encode(cls, model: VAE, data: Dataset) -> Members:
-        """A dataset's tuples through the (fixed) VAE."""
+    def encode(cls, model: VAE, data: Dataset, keys: np.ndarray | None = None) -> Members:
+        """A dataset's tuples through the (fixed) VAE; `keys`: their tuple_keys, if known."""
         states = (data.state1, data.state2) if data.spec.state is not None else None
-        return cls.of_images(model, data.image1, data.image2, data.u, data.a, states)
+        return cls.of_images(model, data.image1, data.image2, data.u, data.a, states, keys)
 
     @classmethod
     def of_images(
@@ -96,8 +96,10 @@ class Members:
         u: np.ndarray,
         a: np.ndarray,
         states: tuple[np.ndarray, np.ndarray] | None = None,
+        keys: np.ndarray | None = None,
     ) -> Members:
-        """Tuples of images through the (fixed) VAE; states where the recorder knew them."""
+        """Tuples of images through the (fixed) VAE; states where the recorder knew them;
+        `keys`: their tuple_keys where the caller has them already."""
         if model.config.image_size != image1.shape[1]:
             raise ValueError(
                 f"the VAE takes {model.config.image_size} px images, got {image1.shape[1]} px"
@@ -113,7 +115,7 @@ class Members:
             states=interleave(*states) if states is not None else np.zeros((2 * n, 0), np.int8),
             has_state=np.full(2 * n, states is not None, np.uint8),
             experience=np.zeros(n, np.uint8),
-            keys=tuple_keys(image1, image2, u),
+            keys=tuple_keys(image1, image2, u) if keys is None else np.asarray(keys, np.uint64),
         )
 
     def __add__(self, other: Members) -> Members:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import os
+from collections.abc import Callable
 
 # Without a display only EGL (or OSMesa) can render; choose it before mujoco is imported.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -16,15 +18,27 @@ def _let_go() -> None:
     and keeps it so; a service's worker thread that rendered last then holds it, and freeing
     the renderer from any other thread (at exit, by the garbage collector) fails with
     EGL_BAD_ACCESS. Each render makes it current again."""
+    release = _release()
+    if release is not None:
+        release()
+
+
+@functools.cache
+def _release() -> Callable[[], None] | None:
+    """What lets go of this thread's EGL context (None unless MuJoCo renders with EGL), found
+    once: renders are a hot path."""
     if os.environ.get("MUJOCO_GL") != "egl":
-        return
+        return None
     from mujoco import egl
     from OpenGL import EGL
 
-    if egl.EGL_DISPLAY is not None:
-        EGL.eglMakeCurrent(
-            egl.EGL_DISPLAY, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT
-        )
+    def release() -> None:
+        if egl.EGL_DISPLAY is not None:
+            EGL.eglMakeCurrent(
+                egl.EGL_DISPLAY, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT
+            )
+
+    return release
 
 
 class OffscreenCamera:

@@ -559,11 +559,12 @@ async function pollHealth() {
       const tasks = [...perTask].map(([task, [count, models, versions]]) =>
         `${task} ×${count} (model ${[...models].join("/")}` +
         (versions.size ? `, roadmap ${[...versions].join("/")})` : ")"));
-      if (name === "planner") followRoadmap(perTask.get(ui.task)?.[2]);
       const text = `${name} ${s.status === "ok" ? "up" : "DOWN"}` +
         (tasks.length ? ": " + tasks.join(", ") : ": no replica");
       return el("li", { class: s.status === "ok" ? "" : "down", text, "data-service": name });
     }));
+    const planners = (body.services.planner?.instances || []).filter((i) => i.task === ui.task);
+    followRoadmap(new Set(planners.map((i) => i.roadmap_version).filter(Boolean)));
   } catch (err) {
     pill.className = "pill down";
     pill.textContent = "gateway unreachable";
