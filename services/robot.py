@@ -11,6 +11,7 @@ import json
 import logging
 import queue
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -55,7 +56,12 @@ class RobotPlanner:
         )
 
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
+        self,
+        start: np.ndarray,
+        goal: np.ndarray,
+        max_plans: int = 8,
+        expect: int | None = None,
+        avoid: Sequence[tuple[int, int]] = (),
     ) -> list[VisualActionPlan]:
         body = {
             "task": self.task_name,
@@ -65,6 +71,7 @@ class RobotPlanner:
             "robot_id": self.robot_id,
             "include_images": False,
             "expect_node": expect,
+            "avoid_steps": [list(step) for step in avoid],
         }
         plan_id = self._request(body)
         published = self._published(plan_id)

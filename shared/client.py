@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -102,10 +103,11 @@ class PlanningClient:
         include_images: bool = True,
         deadline: float | None = None,
         expect_node: int | None = None,
+        avoid_steps: Sequence[tuple[int, int]] = (),
     ) -> PlanOutcome:
         """Plans from start to goal; every call shares one deadline (`time.monotonic()`), so a
         hang anywhere costs the caller that budget once, not once per call after slow ones.
-        `expect_node`: the node a closed loop's last step was meant to reach (PathsRequest)."""
+        `expect_node`, `avoid_steps`: what a closed loop learned so far (PathsRequest)."""
         deadline = deadline or self.deadline()
         images_in = EncodeRequest(task=self.task_name, images=WireArray.of(np.stack([start, goal])))
         encoding = self._call("encoder", "encode", images_in, EncodeReply, deadline)
@@ -118,6 +120,7 @@ class PlanningClient:
             max_plans=max_plans,
             errors=encoded.errors,
             expect_node=expect_node,
+            avoid_steps=list(avoid_steps),
         )
         searching = self._call("planner", "paths", search, PathsReply, deadline)
         found: PathsReply = searching.result()
@@ -196,10 +199,13 @@ class PlanningClient:
         max_plans: int = 8,
         include_images: bool = False,
         expect: int | None = None,
+        avoid: Sequence[tuple[int, int]] = (),
     ) -> list[VisualActionPlan]:
         """The closed loop's Planner protocol: plans only, no decoded images unless asked;
         UnknownImageError when the planner refused an end."""
-        outcome = self.plan_with_reason(start, goal, max_plans, include_images, expect_node=expect)
+        outcome = self.plan_with_reason(
+            start, goal, max_plans, include_images, expect_node=expect, avoid_steps=avoid
+        )
         end = None if outcome.match is None else refused_end(outcome.match)
         if end is not None and outcome.match is not None:
             raise UnknownImageError(end, outcome.reason or f"the {end} is not known", outcome.match)

@@ -13,8 +13,13 @@ def twin_groups(nodes: int, twins: np.ndarray) -> np.ndarray:
     group = np.arange(nodes)
     if not len(twins):
         return group
-    graph = coo_matrix((np.ones(len(twins)), (twins[:, 0], twins[:, 1])), shape=(nodes, nodes))
-    label = connected_components(graph, directed=False)[1]
+    label = node_components(nodes, twins)
     first = np.full(label.max() + 1, nodes)
     np.minimum.at(first, label, group)
     return first[label]
+
+
+def node_components(nodes: int, edges: np.ndarray) -> np.ndarray:
+    """The connected component of each of `nodes` nodes that `edges` (E, 2) join."""
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(nodes, nodes))
+    return connected_components(graph, directed=False)[1]

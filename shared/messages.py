@@ -15,6 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 SCHEMA_VERSION = 1
 MAX_PLANS = 64
+MAX_AVOID = 64  # steps a closed loop asks to avoid: one per missed step, a task at most
+NodeId = Annotated[int, Field(ge=0)]
 WireDtype = Literal["|u1", "<f4", "<i8"]  # uint8 images, float32 latents, int64 ids
 # Far beyond any real array, and small enough that numpy can always take the shape: a shape of
 # huge dimensions and a zero one holds no bytes, so the byte count alone would let it through.
@@ -99,6 +101,9 @@ class PathsRequest(TaskMessage):
     # the node a closed loop's last step was meant to reach (the last plan's nodes[1]): the
     # path starts there where the start image is known there too (knowing.keep_place)
     expect_node: int | None = Field(None, ge=0)
+    # steps (from node, to node) whose action led elsewhere in this task: no path takes them
+    # where another path exists (Roadmap.shortest_paths)
+    avoid_steps: list[tuple[NodeId, NodeId]] = Field(default_factory=list, max_length=MAX_AVOID)
 
 
 class PathsReply(Message):

@@ -26,6 +26,7 @@ def cmd_build_roadmap(args: argparse.Namespace) -> int:
         w_eps=1.0 if w_eps is None else float(w_eps),
         min_samples=None if min_samples is None else int(min_samples),
         eps_rule=args.eps_rule,
+        matching=args.matching,
     )
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
@@ -102,6 +103,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--metric",
         choices=["l1", "l2", "inf"],
         help="default: the VAE's training metric (l1 for the baseline)",
+    )
+    roadmap.add_argument(
+        "--matching",
+        default="whitened",
+        choices=["whitened", "metric"],
+        help="how an image finds its node: whitened by the spread of images within nodes "
+        "(default; the metric where too few images share a node), or in the metric, as the paper",
     )
     roadmap.add_argument("--out", required=True, type=Path)
     roadmap.set_defaults(handler=cmd_build_roadmap)

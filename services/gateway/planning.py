@@ -188,6 +188,7 @@ class Gateway:
             request.include_images,
             deadline,
             request.expect_node,
+            request.avoid_steps,
         )
         response = PlanResponse(
             plan_id=uuid.uuid4().hex,

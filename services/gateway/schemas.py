@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from shared.appearance import APPEARANCES, LEVELS
 from shared.bus import ROBOT_ID_PATTERN
-from shared.messages import MAX_PLANS
+from shared.messages import MAX_AVOID, MAX_PLANS, NodeId
 from shared.tasks import known_tasks
 
 
@@ -96,6 +96,14 @@ class PlanRequest(TaskRequest):
         "(its plan's nodes[1]). The plans start there where the start image is known there "
         "too, so that a state the roadmap holds in several nodes is not re-planned from each "
         "in turn; ignored otherwise",
+    )
+    avoid_steps: list[tuple[NodeId, NodeId]] = Field(
+        default_factory=list,
+        max_length=MAX_AVOID,
+        description="a robot re-planning after steps whose action led elsewhere: those steps "
+        "[from node, to node] (a plan's nodes[0] and nodes[1]). No plan takes one of them where "
+        "another plan exists, so that one wrong action is not repeated all task long; steps "
+        "of nodes the roadmap does not have are ignored",
     )
 
 

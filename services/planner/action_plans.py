@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -51,12 +52,17 @@ class ActionPlanner:
         return self.planner.encode(image[None])[0]
 
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
+        self,
+        start: np.ndarray,
+        goal: np.ndarray,
+        max_plans: int = 8,
+        expect: int | None = None,
+        avoid: Sequence[tuple[int, int]] = (),
     ) -> list[VisualActionPlan]:
         """Plans from a start image to a goal image, in the roadmap's deterministic order;
         UnknownImageError when an end is unlike anything the model knows."""
         z, errors = self.planner.look(np.stack([start, goal]))
-        return self.plan_latent(z[0], z[1], max_plans, errors, expect)
+        return self.plan_latent(z[0], z[1], max_plans, errors, expect, avoid)
 
     def plan_latent(
         self,
@@ -65,9 +71,11 @@ class ActionPlanner:
         max_plans: int = 8,
         errors: np.ndarray | None = None,
         expect: int | None = None,
+        avoid: Sequence[tuple[int, int]] = (),
     ) -> list[VisualActionPlan]:
         plans = []
-        for latent_plan in self.planner.plan_latent(z_start, z_goal, max_plans, errors, expect):
+        found = self.planner.plan_latent(z_start, z_goal, max_plans, errors, expect, avoid)
+        for latent_plan in found:
             z = latent_plan.latents
             arrays, confidences = propose(self.apn, z[:-1], z[1:]) if len(z) > 1 else ([], [])
             plans.append(

@@ -19,7 +19,13 @@ from services.planner.evaluate import (
     sample_test_pairs,
     shows_everything,
 )
-from services.planner.knowing import MatchError, load_calibration, match, reconstruction_errors
+from services.planner.knowing import (
+    Calibration,
+    MatchError,
+    load_calibration,
+    match,
+    reconstruction_errors,
+)
 from services.planner.members import interleave
 from services.planner.roadmap import Roadmap
 from services.planner.versions import roadmap_dir
@@ -34,20 +40,11 @@ def load_test_images(test_dir: Path | str) -> tuple[np.ndarray, np.ndarray, str]
     return interleave(data.image1, data.image2), interleave(data.state1, data.state2), data.task
 
 
-def _known(
-    model_dir: Path | str,
-    vae: VAE,
-    roadmap: Roadmap,
-    images: np.ndarray,
-    z_test: np.ndarray,
-) -> np.ndarray | None:
-    """Which test images the model knows by its calibration (None without one)."""
+def _calibration(model_dir: Path | str, roadmap: Roadmap) -> Calibration | None:
     try:
-        calibration = load_calibration(roadmap_dir(model_dir), roadmap)
+        return load_calibration(roadmap_dir(model_dir), roadmap)
     except MatchError:
         return None
-    errors = reconstruction_errors(vae, images, z_test)
-    return np.array([m.known for m in match(roadmap, calibration, z_test, errors)])
 
 
 def run_vfm_eval(
@@ -70,6 +67,7 @@ def run_vfm_eval(
         )
     z_test, _ = encode_images(vae, images)
     test_pairs = sample_test_pairs(len(images), pairs, seed)
+    calibration = _calibration(model_dir, roadmap)
 
     reader = load_reader(reader_dir) if reader_dir else None
     node_reads = None
@@ -86,7 +84,15 @@ def run_vfm_eval(
         "pure_nodes": int((labels.purity == 1).sum()),
         "distinct_node_states": len({s.tobytes() for s in labels.states}),
         **evaluate_plans(
-            task_name, roadmap, labels, z_test, states, test_pairs, max_paths, node_reads
+            task_name,
+            roadmap,
+            labels,
+            z_test,
+            states,
+            test_pairs,
+            max_paths,
+            node_reads,
+            calibration,
         ),
     }
     # A state with a part no image shows (the T-shirt's sleeve under its folded half) caps any
@@ -96,11 +102,19 @@ def run_vfm_eval(
         row["pairs_showing_every_part"] = 100.0 * float(both_shown.mean())
         if both_shown.any():
             shown = evaluate_plans(
-                task_name, roadmap, labels, z_test, states, test_pairs[both_shown], max_paths
+                task_name,
+                roadmap,
+                labels,
+                z_test,
+                states,
+                test_pairs[both_shown],
+                max_paths,
+                calibration=calibration,
             )
             row["shown_pairs"] = {k: shown[k] for k in ("pairs", "all", "any", "trans")}
-    known = _known(model_dir, vae, roadmap, images, z_test)
-    if known is not None:
+    if calibration is not None:
+        errors = reconstruction_errors(vae, images, z_test)
+        known = np.array([m.known for m in match(roadmap, calibration, z_test, errors)])
         # With refusal on a pair with an unknown end gets no plan: Table I over all pairs
         # counts it as failed; `known_pairs` says how the plans of the others fared.
         both = known[test_pairs].all(1)
@@ -108,7 +122,14 @@ def run_vfm_eval(
         row["pairs_known"] = 100.0 * float(both.mean())
         if both.any():
             kept = evaluate_plans(
-                task_name, roadmap, labels, z_test, states, test_pairs[both], max_paths
+                task_name,
+                roadmap,
+                labels,
+                z_test,
+                states,
+                test_pairs[both],
+                max_paths,
+                calibration=calibration,
             )
             row["known_pairs"] = {k: kept[k] for k in ("pairs", "all", "any", "trans")}
             row["refusal_on"] = {k: kept[k] * float(both.mean()) for k in ("all", "any")}

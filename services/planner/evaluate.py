@@ -16,6 +16,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from services.planner.knowing import Calibration, connect
 from services.planner.roadmap import Roadmap, pair_distances
 from shared.tasks import get_task
 from shared.tasks.base import IllegalActionError, Task, optimal_moves
@@ -151,8 +152,10 @@ def evaluate_plans(
     pairs: np.ndarray,
     max_paths: int,
     node_reads: np.ndarray | None = None,
+    calibration: Calibration | None = None,
 ) -> dict[str, Any]:
-    """% All / Any / Trans over the pairs, plus decoded-image agreement when reads are given."""
+    """% All / Any / Trans over the pairs, plus decoded-image agreement when reads are given;
+    with a calibration the ends are connected as the planner connects them (knowing.connect)."""
     task = get_task(task_name)
     checker = TransitionChecker(task)
     if roadmap.num_nodes == 0:  # e.g. a collapsed encoder: every latent in one pruned region
@@ -174,7 +177,10 @@ def evaluate_plans(
     detours: list[float] = []  # plan moves / fewest moves, where a plan is correct
     for i, j in pairs:
         start, goal = task.array_to_state(test_states[i]), task.array_to_state(test_states[j])
-        paths = roadmap.shortest_paths(int(nearest[i]), int(nearest[j]), max_paths=max_paths)
+        ends = int(nearest[i]), int(nearest[j])
+        if calibration is not None:
+            ends = connect(roadmap, calibration, z_test[i], z_test[j], *ends)
+        paths = roadmap.shortest_paths(*ends, max_paths=max_paths)
         if not paths:
             no_path += 1
             continue

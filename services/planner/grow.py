@@ -47,9 +47,16 @@ from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, load_calibration, match, save_calibration
 from services.planner.members import MEMBERS, Members, tuple_keys
 from services.planner.regions import CDIST_NAME, connected_regions
-from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, pair_distances
+from services.planner.roadmap import (
+    ARRAYS_NAME,
+    JSON_NAME,
+    Roadmap,
+    fit_whitening,
+    pair_distances,
+)
 from shared.checkpoint import seal
 from shared.dataset import FIELDS, Dataset, load_dataset
+from shared.graphs import node_components
 from shared.tasks import get_task
 from shared.tasks.base import Task
 from shared.tasks.spec import TaskSpec
@@ -192,12 +199,6 @@ def contradictions(
     return found
 
 
-def node_components(k: int, edges: np.ndarray) -> np.ndarray:
-    """The connected component of each of k nodes."""
-    graph = sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(k, k))
-    return connected_components(graph, directed=False)[1]
-
-
 def components(k: int, edges: np.ndarray) -> int:
     return int(node_components(k, edges).max()) + 1 if k else 0
 
@@ -331,6 +332,9 @@ def grow(
         point_node=node.astype(np.int64),
         stats=stats,
         twins=twins,
+        whitening=fit_whitening(everything.points, node)
+        if roadmap.config.matching == "whitened"
+        else roadmap.whitening,
     )
     report["held"] = held - base // 2  # indices into the new tuples
     # Built nodes are known as before (recalibrating on what they let in would let the bounds

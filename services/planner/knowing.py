@@ -5,9 +5,10 @@ A robot acts on the plans it is given, so an image unlike anything the model was
 must be refused rather than mapped to its nearest node. Three terms, each over a threshold that
 is a fixed factor times a high quantile of the same term over the training images (so that it
 needs nothing but the training data; tasks defined by their data have no labels):
-- the distance (the roadmap's metric) from the image's encoder mean to the nearest node, against
-  that node's own training images: regions differ tenfold in spread (the cloth model: 0.34 to
-  3.5), so one threshold for all let a rotated, fully folded cloth (a tight region) through;
+- the distance (the roadmap's metric) from the image's encoder mean to the node it matches
+  (`Roadmap.nearest_node`), against that node's own training images: regions differ tenfold
+  in spread (the cloth model: 0.34 to 3.5), so one threshold for all let a rotated, fully
+  folded cloth (a tight region) through;
 - the reconstruction error of the decoded mean over the whole image;
 - and over its worst quarter-frame patch: a covered half, an upside-down shirt or a shifted
   frame is wrong in one place, which a whole-image mean dilutes into camera noise.
@@ -136,7 +137,7 @@ def _errors(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:
 
 
 def distances(roadmap: Roadmap, latents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(nearest node, distance to it) for each latent (M, D), in the roadmap's metric."""
+    """(matched node, distance to it in the roadmap's metric) for each latent (M, D)."""
     latents = np.asarray(latents, dtype=np.float64).reshape(-1, roadmap.nodes.shape[1])
     nodes = np.atleast_1d(roadmap.nearest_node(latents))
     gaps = latents - roadmap.nodes[nodes].astype(np.float64)
@@ -237,6 +238,72 @@ def keep_place(
         return start
     gap = pair_distances(z_start, roadmap.nodes[expect], roadmap.config.metric)
     return expect if bool(gap <= calibration.node_thresholds[expect]) else start
+
+
+CANDIDATES = 8  # nodes tried for each end when the two matched are not connected
+
+
+def connect(
+    roadmap: Roadmap,
+    calibration: Calibration,
+    z_start: np.ndarray,
+    z_goal: np.ndarray,
+    start: int,
+    goal: int,
+) -> tuple[int, int]:
+    """The nodes to plan between: `start` and `goal` where a path joins them, else, as a
+    probabilistic roadmap's query connects its ends, the closest pair (fewest ranks down the
+    two lists) of nodes among each end's CANDIDATES nearest that it is known at and that one
+    component holds; `start` and `goal` where there is none.
+
+    Why: a grown roadmap keeps small islands of built nodes, images that no later one joined
+    (at 500 box tuples after 2000 exploring actions, five of two nodes, every state in them
+    also in the main component); an image that lands in one was a task that could not be
+    planned."""
+    part = roadmap.component
+    if part[start] == part[goal]:
+        return start, goal
+    lists = [
+        _known_nodes(roadmap, calibration, z, n) for z, n in ((z_start, start), (z_goal, goal))
+    ]
+    pairs = [
+        (i + j, s, g)
+        for i, s in enumerate(lists[0])
+        for j, g in enumerate(lists[1])
+        if part[s] == part[g]
+    ]
+    if not pairs:
+        return start, goal
+    _, s, g = min(pairs)
+    return int(s), int(g)
+
+
+def _known_nodes(
+    roadmap: Roadmap, calibration: Calibration, z: np.ndarray, first: int
+) -> list[int]:
+    """`first`, then the nodes among the CANDIDATES nearest `z` that know it, nearest first."""
+    near = roadmap.nearest_nodes(z, min(CANDIDATES, roadmap.num_nodes))
+    gaps = np.linalg.norm(
+        roadmap.nodes[near].astype(np.float64) - z, ord=metric_p(roadmap.config.metric), axis=1
+    )
+    known = near[gaps <= np.asarray(calibration.node_thresholds)[near]]
+    return [first, *(int(n) for n in known if n != first)]
+
+
+def place_ends(
+    roadmap: Roadmap,
+    calibration: Calibration,
+    z_start: np.ndarray,
+    z_goal: np.ndarray,
+    errors: np.ndarray,
+    expect: int | None = None,
+) -> tuple[dict[str, Match], int, int]:
+    """Both ends' matches and the nodes to plan between (check_ends, keep_place, connect);
+    UnknownImageError as check_ends."""
+    matched = check_ends(roadmap, calibration, z_start, z_goal, errors)
+    start = keep_place(roadmap, calibration, z_start, matched["start"].node, expect)
+    start, goal = connect(roadmap, calibration, z_start, z_goal, start, matched["goal"].node)
+    return matched, start, goal
 
 
 def save_calibration(calibration: Calibration, roadmap_dir: Path | str) -> Path:

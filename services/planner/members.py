@@ -70,6 +70,8 @@ class Members:
 
     @classmethod
     def load(cls, folder: Path) -> Members:
+        if not (folder / MEMBERS).is_file():
+            raise RoadmapError(f"{folder / MEMBERS}: missing")
         try:
             arrays = load_file(str(folder / MEMBERS))
         except Exception as exc:  # safetensors raises its own error types for corrupt files

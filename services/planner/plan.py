@@ -5,6 +5,7 @@ This is the in-process core that the planner service and `lsr plan` wrap.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,21 +72,23 @@ class VisualPlanner:
         max_paths: int,
         errors: np.ndarray | None = None,
         expect: int | None = None,
+        avoid: Sequence[tuple[int, int]] = (),
     ) -> list[LatentPlan]:
         """All shortest paths; UnknownImageError when an end is not known (a calibrated
         planner needs both images' reconstruction errors, from `look`).
 
-        `expect`: the node a closed loop's last step was meant to reach (`knowing.keep_place`).
+        `expect`: the node a closed loop's last step was meant to reach (`knowing.keep_place`);
+        `avoid`: steps no path takes (Roadmap.shortest_paths).
         """
         if self.calibration is not None:
             if errors is None:
                 raise ValueError("a calibrated planner needs the images' reconstruction errors")
-            ends = knowing.check_ends(self.roadmap, self.calibration, z_start, z_goal, errors)
-            start, goal = ends["start"].node, ends["goal"].node  # found while matching
-            start = knowing.keep_place(self.roadmap, self.calibration, z_start, start, expect)
+            _, start, goal = knowing.place_ends(
+                self.roadmap, self.calibration, z_start, z_goal, errors, expect
+            )
         else:
             start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))
-        paths = self.roadmap.shortest_paths(start, goal, max_paths=max_paths)
+        paths = self.roadmap.shortest_paths(start, goal, max_paths, avoid)
         return [LatentPlan(p, self.roadmap.nodes[p]) for p in paths]
 
     def plan(self, start: np.ndarray, goal: np.ndarray, max_paths: int = 16) -> list[LatentPlan]:

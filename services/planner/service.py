@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from services.planner.knowing import Calibration, check_ends, keep_place, load_calibration
+from services.planner.knowing import Calibration, load_calibration, place_ends
 from services.planner.roadmap import Roadmap
 from services.planner.versions import current_version, version_dir
 from services.runtime import ServiceContext
@@ -117,7 +117,9 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
                 "errors", "must be 2 x 2 finite, non-negative numbers (whole image, worst patch)"
             )
         try:
-            matched = check_ends(roadmap, calibration, z_start, z_goal, errors)
+            matched, start, goal = place_ends(
+                roadmap, calibration, z_start, z_goal, errors, request.expect_node
+            )
         except UnknownImageError as refused:
             return PathsReply(
                 paths=[],
@@ -129,9 +131,9 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
                 match={end: m.to_json() for end, m in refused.match.items()},
                 roadmap_version=now.version,
             )
-        start, goal = matched["start"].node, matched["goal"].node
-        start = keep_place(roadmap, calibration, z_start, start, request.expect_node)
-        found = roadmap.shortest_paths(start, goal, max_paths=request.max_plans)
+        # like expect_node, a hint: steps of nodes another roadmap version had are ignored
+        avoid = [step for step in request.avoid_steps if max(step) < roadmap.num_nodes]
+        found = roadmap.shortest_paths(start, goal, request.max_plans, avoid)
         node_ids = sorted({n for path in found for n in path})
         return PathsReply(
             paths=found,

@@ -7,7 +7,7 @@ the ActionPlanner, in the service stack a client of the planning services.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -24,9 +24,15 @@ class Planner(Protocol):
     (TryShortcuts), after whose refusal the loop plans again rather than stopping."""
 
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = ..., expect: int | None = ...
+        self,
+        start: np.ndarray,
+        goal: np.ndarray,
+        max_plans: int = ...,
+        expect: int | None = ...,
+        avoid: Sequence[tuple[int, int]] = ...,
     ) -> list[VisualActionPlan]:
-        """`expect`: the node the loop's last step was meant to reach (knowing.keep_place)."""
+        """`expect`: the node the loop's last step was meant to reach (knowing.keep_place);
+        `avoid`: steps (from node, to node) whose action led elsewhere in this task."""
         ...
 
 
@@ -61,10 +67,15 @@ class TryShortcuts:
         self.last_was_shortcut = False
 
     def plan(
-        self, start: np.ndarray, goal: np.ndarray, max_plans: int = 8, expect: int | None = None
+        self,
+        start: np.ndarray,
+        goal: np.ndarray,
+        max_plans: int = 8,
+        expect: int | None = None,
+        avoid: Sequence[tuple[int, int]] = (),
     ) -> list[VisualActionPlan]:
         self.last_was_shortcut = False
-        plans = self.planner.plan(start, goal, max_plans, expect)
+        plans = self.planner.plan(start, goal, max_plans, expect=expect, avoid=avoid)
         options = {(p.nodes[0], p.nodes[2]): p for p in plans if len(p.nodes) > 2}
         fresh = sorted(pair for pair in options if pair not in self.tried)
         if not fresh or self.rng.random() >= self.share:
@@ -125,6 +136,8 @@ def run_episode(
     episode = Episode(success=False, reason="max_steps", final_state=state, states=[state])
     last: np.ndarray | None = None  # the image seen after the last action
     expect: int | None = None  # the node the last step was meant to reach
+    step: tuple[int, int] | None = None  # that step, from node to node
+    missed: list[tuple[int, int]] = []  # steps whose action led elsewhere
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
@@ -132,7 +145,13 @@ def run_episode(
         if record is not None and last is not None and not np.array_equal(last, seen):
             record(last, None, seen, state, state)
         try:
-            plans = planner.plan(seen, goal_image, max_plans, expect)
+            plans = planner.plan(seen, goal_image, max_plans, expect=expect, avoid=tuple(missed))
+            if step is not None and plans and plans[0].nodes[0] != expect:
+                missed.append(step)  # its action led elsewhere: no plan of this task takes it
+                if any(tuple(p.nodes[:2]) == step for p in plans):
+                    plans = planner.plan(
+                        seen, goal_image, max_plans, expect=expect, avoid=tuple(missed)
+                    )
         except UnknownImageError as refused:  # never act on a scene the model does not know
             episode.reason = f"unknown_{refused.end}"
             episode.detail = refused.reason
@@ -166,6 +185,7 @@ def run_episode(
             episode.reason = f"physics: {exc}"
             break
         expect = plan.nodes[1]
+        step = (plan.nodes[0], expect)
         episode.actions.append(plan.actions[0])
         episode.states.append(state)
         episode.refused.append(False)

@@ -23,11 +23,12 @@ from services.apn.train import propose
 from services.data.experience import ExperienceLog, Recorder, tuple_arrays
 from services.encoder.checkpoint import read_vae_config
 from services.planner.action_plans import ActionPlanner
-from services.planner.grow import grow, grow_model, load_members, node_components, state_labels
+from services.planner.grow import grow, grow_model, load_members, state_labels
 from services.planner.members import Members
 from services.planner.roadmap import Roadmap, pair_distances
 from services.sim.worlds import has_world, make_world
 from shared.appearance import trained_appearance
+from shared.graphs import node_components
 from shared.tasks.base import IllegalActionError, Task, WorldError
 from shared.tasks.spec import ArraySpec
 

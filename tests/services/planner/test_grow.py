@@ -65,6 +65,9 @@ def test_growth_adds_the_edges_experience_shows_and_keeps_the_built_nodes():
     experience = members([("B", "C", 3), ("A", "A", 4), ("far", "far", 5)], seed=1)
     grown, _, everything, report = grow(roadmap, known, m, experience, TASK)
     assert np.array_equal(grown.nodes[:4], roadmap.nodes)  # old nodes keep ids and latents
+    # the spread within nodes is fitted again over the images they hold now
+    assert roadmap.whitening.shape == grown.whitening.shape == (2, 2)
+    assert not np.array_equal(grown.whitening, roadmap.whitening)
     assert len(grown.edges) == 3 and report["components"] == [2, 1]
     assert report["new_edges"] == 1 and report["no_change"] == 1
     assert report["held_for_review"] == 1 and report["held"].tolist() == [2]
@@ -220,3 +223,14 @@ def test_members_kept_before_tuple_keys_load_with_keys_unknown(tmp_path):
     del arrays["keys"]
     save_file(arrays, str(tmp_path / MEMBERS))
     assert Members.load(tmp_path).keys.tolist() == [0, 0]
+
+
+def test_members_missing_or_broken_are_named(tmp_path):
+    from services.planner.members import MEMBERS
+    from services.planner.roadmap import RoadmapError
+
+    with pytest.raises(RoadmapError, match=f"{MEMBERS}: missing"):
+        Members.load(tmp_path)
+    (tmp_path / MEMBERS).write_bytes(b"\x00" * 8)
+    with pytest.raises(RoadmapError, match="not a readable safetensors file"):
+        Members.load(tmp_path)

@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from services.planner.knowing import (
     MatchError,
     calibrate,
     check_ends,
+    connect,
     load_calibration,
     look,
     look_many,
@@ -142,6 +144,38 @@ def test_the_planner_refuses_an_unknown_start_before_searching(chain):
     with pytest.raises(ValueError, match="reconstruction errors"):
         planner.plan_latent(centres[0], centres[2], 4)
     assert VisualPlanner(vae, roadmap).plan_latent(centres[0] + 3.0, centres[2], 4)  # uncalibrated
+
+
+def with_island(chain):
+    """The chain and an island of two nodes joined by an edge: node 3 just beside node 0 (the
+    same state, as a grown roadmap's stale built node), node 4 far away."""
+    roadmap, latents, centres, errors = chain
+    calibration = calibrate(roadmap, latents, errors)
+    island = np.array([centres[0] + 0.12, centres[0] + 40.0], np.float32)
+    grown = replace(
+        roadmap,
+        nodes=np.concatenate([roadmap.nodes, island]),
+        node_sizes=np.concatenate([roadmap.node_sizes, [1, 1]]),
+        edges=np.concatenate([roadmap.edges, [[3, 4]]]),
+        edge_weights=np.concatenate([roadmap.edge_weights, [1]]),
+    )
+    return grown, replace(calibration, node_thresholds=(1.0,) * 5), centres
+
+
+def test_ends_in_two_components_plan_from_the_nearest_nodes_that_connect(chain):
+    roadmap, calibration, centres = with_island(chain)
+    image = centres[0] + 0.08  # nearest the island's node 3, and known at node 0 too
+    assert roadmap.nearest_node(image) == 3 and roadmap.component.tolist() == [0, 0, 0, 1, 1]
+    assert connect(roadmap, calibration, image, centres[2], 3, 2) == (0, 2)
+    assert connect(roadmap, calibration, centres[2], image, 2, 3) == (2, 0)
+    assert connect(roadmap, calibration, image, centres[1], 0, 1) == (0, 1)  # joined already
+    vae = VAE(VAEConfig(image_size=32, latent_dim=4)).eval()
+    plans = VisualPlanner(vae, roadmap, calibration).plan_latent(image, centres[2], 4, GOOD)
+    assert [p.nodes for p in plans] == [[0, 1, 2]]
+    # known at the island only: nothing to connect, and the planner finds no path
+    tight = replace(calibration, node_thresholds=(0.2, 1.0, 1.0, 1.0, 1.0))
+    assert connect(roadmap, tight, image, centres[2], 3, 2) == (3, 2)
+    assert VisualPlanner(vae, roadmap, tight).plan_latent(image, centres[2], 4, GOOD) == []
 
 
 def test_a_calibration_round_trips_and_bad_files_are_named(chain, tmp_path):

@@ -189,7 +189,20 @@ def test_roadmaps_saved_before_eps_rule_load_as_algorithm_1(tmp_path):
     meta = json.loads((tmp_path / "roadmap.json").read_text())
     del meta["config"]["eps_rule"]
     (tmp_path / "roadmap.json").write_text(json.dumps(meta))
-    assert Roadmap.load(tmp_path).config == RoadmapConfig(eps_rule="paper", min_samples=3)
+    assert Roadmap.load(tmp_path).config == RoadmapConfig(
+        eps_rule="paper", min_samples=3, matching="whitened"
+    )
+
+
+def test_roadmaps_saved_before_whitening_match_in_the_metric(tmp_path):
+    z1, z2, a, _ = synthetic()
+    build_roadmap(z1, z2, a, RoadmapConfig(matching="metric")).save(tmp_path)
+    meta = json.loads((tmp_path / "roadmap.json").read_text())
+    del meta["config"]["matching"]
+    (tmp_path / "roadmap.json").write_text(json.dumps(meta))
+    assert "whitening" not in load_file(str(tmp_path / "roadmap.safetensors"))
+    loaded = Roadmap.load(tmp_path)
+    assert loaded.config.matching == "metric" and loaded.whitening.shape == (0, 0)
 
 
 def test_build_rejects_bad_input():
@@ -306,6 +319,50 @@ def test_nearest_node_uses_the_metric(metric, expected):
     assert batch.dtype == np.int64 and batch.tolist() == [expected, 1, 0]
     with pytest.raises(RoadmapError, match="shape"):
         roadmap.nearest_node(np.zeros(3))
+    if metric == "l1":
+        assert roadmap.nearest_nodes(np.zeros(2), 3).tolist() == [0, 2, 1]
+        assert roadmap.nearest_nodes(np.zeros((2, 2)), 2).tolist() == [[0, 2], [0, 2]]
+    with pytest.raises(RoadmapError, match=r"k must lie in 1\.\.3"):
+        roadmap.nearest_nodes(np.zeros(2), 4)
+
+
+def spread_roadmap(matching="whitened", per_node=20):
+    """Two states whose images spread widely along x and barely along y; their nodes lie 2
+    apart in x and 0.6 in y, so that an image of the first can lie nearer the second in L1."""
+    rng = np.random.default_rng(0)
+    centres = np.array([[0.0, 0.0], [2.0, 0.6]])
+    node = np.repeat([0, 1], per_node)
+    points = (centres[node] + rng.normal(size=(len(node), 2)) * [1.0, 0.1]).astype(np.float32)
+    whitening = rm.fit_whitening(points, node) if matching == "whitened" else None
+    return replace(
+        make_roadmap(centres, [(0, 1)]),
+        config=RoadmapConfig(matching=matching),
+        point_node=node.astype(np.int64),
+        whitening=np.zeros((0, 0), np.float32) if whitening is None else whitening,
+    )
+
+
+def test_whitened_matching_follows_the_spread_of_images_within_nodes():
+    image_of_first = np.array([1.4, 0.0])  # L1: 1.4 to its node, 1.2 to the other
+    assert spread_roadmap("metric").nearest_node(image_of_first) == 1
+    whitened = spread_roadmap("whitened")
+    assert whitened.whitening.shape == (2, 2)
+    assert whitened.nearest_node(image_of_first) == 0
+    assert whitened.nearest_node(np.array([[2.5, 0.6], [-1.0, 0.05]])).tolist() == [1, 0]
+
+
+def test_whitening_needs_enough_images_sharing_a_node():
+    assert spread_roadmap("whitened", per_node=2).whitening.shape == (0, 0)  # 2 dof, 2 dims
+    lone = rm.fit_whitening(np.zeros((6, 2), np.float32), np.arange(6))  # one image a node
+    assert lone.shape == (0, 0)
+    z1, z2, a, _ = synthetic()
+    built = build_roadmap(z1, z2, a)
+    assert built.config.matching == "whitened" and built.whitening.shape == (8, 8)
+    assert build_roadmap(z1, z2, a, RoadmapConfig(matching="metric")).whitening.size == 0
+    with pytest.raises(RoadmapError, match="matching"):
+        RoadmapConfig(matching="nearest")
+    with pytest.raises(RoadmapError, match="whitening must have shape"):
+        replace(built, whitening=np.eye(3, dtype=np.float32))
 
 
 # ------------------------------------------------------------------------------------------
@@ -335,6 +392,8 @@ def test_save_load_round_trip(tmp_path):
         assert got.dtype == want.dtype and np.array_equal(got, want), key
     assert loaded.shortest_paths(0, 7) == roadmap.shortest_paths(0, 7)
     assert loaded.nearest_node(z1[0]) == roadmap.nearest_node(z1[0])
+    assert loaded.whitening.shape == (8, 8)
+    assert np.array_equal(loaded.whitening, roadmap.whitening)
 
 
 def test_load_broken_folder(tmp_path):

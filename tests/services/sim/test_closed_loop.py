@@ -19,7 +19,7 @@ class OraclePlanner:
     def __init__(self, world, goal):
         self.world, self.goal = world, goal
 
-    def plan(self, start, goal, max_plans=8, expect=None):
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         task, state = self.world.task, self.world.read_state()
         if state == self.goal:
             return [VisualActionPlan([0], [start], [], [], [])]
@@ -31,7 +31,7 @@ class FixedPlanner:
     def __init__(self, plans):
         self.plans = plans
 
-    def plan(self, start, goal, max_plans=8, expect=None):
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         return self.plans
 
 
@@ -75,7 +75,7 @@ class ScenePlanner:
     def __init__(self, world, goal, known):
         self.oracle, self.known, self.calls = OraclePlanner(world, goal), known, 0
 
-    def plan(self, start, goal, max_plans=8, expect=None):
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         self.calls += 1
         if self.calls > self.known:
             match = {"start": Match(False, 4.2, 7), "goal": Match(True, 0.1, 3)}
@@ -145,7 +145,7 @@ class NodePlanner:
     def __init__(self, world, lie=False):
         self.world, self.lie = world, lie
 
-    def plan(self, start, goal, max_plans=8, expect=None):
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         task, seen = self.world.task, self.world.seen
         states, actions = shortest_path(task, seen[start.tobytes()], seen[goal.tobytes()])
         if self.lie and len(actions) > 1:
@@ -203,7 +203,7 @@ class TwoStepPlanner:
     def __init__(self):
         self.calls = 0
 
-    def plan(self, start, goal, max_plans=8, expect=None):
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         self.calls += 1
         n = 10 * self.calls
         return [
@@ -249,7 +249,7 @@ def test_a_refused_action_ends_the_episode_unless_it_was_a_one_off_shortcut(worl
         def __init__(self, shortcut):
             self.first, self.shortcut, self.last_was_shortcut = True, shortcut, False
 
-        def plan(self, image, goal_image, max_plans=8, expect=None):
+        def plan(self, image, goal_image, max_plans=8, expect=None, avoid=()):
             self.last_was_shortcut = self.first and self.shortcut
             if self.first:
                 self.first = False
@@ -278,7 +278,7 @@ def test_table3_pairs_each_tried_action_with_the_state_after_it(world):
     class ShortcutFirst(NodePlanner):
         last_was_shortcut = False
 
-        def plan(self, start, goal, max_plans=8, expect=None):
+        def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
             plans = super().plan(start, goal, max_plans, expect)
             self.last_was_shortcut = not self.last_was_shortcut and bool(plans[0].actions)
             if self.last_was_shortcut:

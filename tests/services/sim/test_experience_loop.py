@@ -40,7 +40,7 @@ class Oracle:
     def __init__(self, world):
         self.world = world
 
-    def plan(self, start, goal, max_plans=8, expect=None):
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         task, state = self.world.task, self.world.read_state()
         move, _ = min(task.neighbours(state), key=lambda m: optimal_moves(task, m[1], self.goal))
         return [VisualActionPlan([0, 1], [start, goal], [move], [1.0], [1])]
