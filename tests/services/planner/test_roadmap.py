@@ -270,6 +270,19 @@ def test_shortest_paths_grid():
     assert grid.neighbours(4) == [1, 3, 5]
 
 
+def test_shortest_paths_avoid_steps_in_their_direction_unless_every_path_takes_them():
+    grid = grid_roadmap(2, 3)  # 0 1 2 / 3 4 5
+    assert grid.shortest_paths(0, 5, avoid=[(1, 4)]) == [[0, 1, 2, 5], [0, 3, 4, 5]]
+    assert grid.shortest_paths(0, 5, avoid=[(0, 1)]) == [[0, 3, 4, 5]]
+    assert grid.shortest_paths(0, 5, avoid=[(4, 1)]) == grid.shortest_paths(0, 5)  # other way
+    assert grid.shortest_paths(0, 2, avoid=[(1, 2)]) == [[0, 1, 4, 5, 2], [0, 3, 4, 5, 2]]
+    assert grid.shortest_paths(0, 5, avoid=[(0, 1), (0, 3)]) == grid.shortest_paths(0, 5)
+    with pytest.raises(RoadmapError, match="avoid must be a node id"):
+        grid.shortest_paths(0, 5, avoid=[(0, 9)])
+    with pytest.raises(RoadmapError, match="avoid must hold steps"):
+        grid.shortest_paths(0, 5, avoid=[(0, 1, 2)])
+
+
 def test_shortest_paths_are_all_shortest_paths_in_order():
     grid = grid_roadmap(3, 4)
     paths = grid.shortest_paths(0, 11, max_paths=100)

@@ -1,4 +1,5 @@
-"""The planner service's paths handler keeps a closed loop's place (`expect_node`)."""
+"""The planner service's paths handler keeps a closed loop's place (`expect_node`) and the
+steps it asks to avoid (`avoid_steps`)."""
 
 import json
 import shutil
@@ -33,13 +34,14 @@ def paths_handler(tiny_model, tmp_path):
     context.stopping.set()
 
 
-def ask(handler, info, z_start, z_goal, expect_node=None):
+def ask(handler, info, z_start, z_goal, expect_node=None, avoid_steps=()):
     request = PathsRequest(
         task=info.task,
         z_start=WireArray.of(z_start.astype(np.float32)),
         z_goal=WireArray.of(z_goal.astype(np.float32)),
         errors=WireArray.of(np.zeros((2, 2), np.float32)),
         expect_node=expect_node,
+        avoid_steps=list(avoid_steps),
     )
     return handler(pack(request))
 
@@ -65,3 +67,20 @@ def test_a_negative_expected_node_is_refused_by_name():
             z_goal=WireArray.of(np.zeros(2, np.float32)),
             expect_node=-1,
         )
+
+
+def test_the_steps_asked_to_avoid_reach_the_search(paths_handler, monkeypatch):
+    handler, roadmap, info = paths_handler
+    a, b = (int(n) for n in roadmap.edges[0])
+    searched = []
+    search = Roadmap.shortest_paths
+
+    def spy(self, src, dst, max_paths=16, avoid=()):
+        searched.append(list(avoid))
+        return search(self, src, dst, max_paths, avoid)
+
+    monkeypatch.setattr(Roadmap, "shortest_paths", spy)
+    far = roadmap.num_nodes + 5  # a node of another roadmap version: that step is ignored
+    reply = ask(handler, info, roadmap.nodes[a], roadmap.nodes[b], avoid_steps=[(a, b), (a, far)])
+    assert searched[0] == [(a, b)]
+    assert reply.paths == [[a, b]]  # the tiny roadmap is a tree: no way round, so through it

@@ -1,3 +1,4 @@
+import itertools
 from dataclasses import replace
 from pathlib import Path
 
@@ -5,6 +6,7 @@ import numpy as np
 import pytest
 
 from services.planner.action_plans import ActionPlanner
+from services.planner.roadmap import Roadmap, RoadmapConfig
 from services.sim.closed_loop import TryShortcuts, evaluate_system, optimal_moves, run_episode
 from shared.plans import Match, UnknownImageError, VisualActionPlan
 from shared.tasks.base import IllegalActionError, WorldError
@@ -56,6 +58,56 @@ def test_loop_reaches_the_goal_with_an_oracle(world):
     assert episode.success and episode.reason == "goal"
     assert len(episode.actions) == optimal_moves(world.task, start, goal)
     assert len(episode.images) == len(episode.actions)
+
+
+class WrongStepPlanner:
+    """Plans on a real roadmap of four states whose action for step 0 -> 1 leads to node 3, a
+    dead end joined only to node 0; the honest way round is 0 -> 2 -> 1."""
+
+    def __init__(self, world, states):
+        self.world, self.ids, self.avoided = world, {s: i for i, s in enumerate(states)}, []
+        edges = [(0, 1), (0, 2), (0, 3), (1, 2)]
+        self.roadmap = Roadmap(
+            config=RoadmapConfig(),
+            epsilon=1.0,
+            mu0=0.5,
+            sigma0=0.5,
+            nodes=np.eye(4, dtype=np.float32),
+            node_sizes=np.ones(4, np.int64),
+            edges=np.array(edges, np.int64),
+            edge_weights=np.ones(4, np.int64),
+            point_node=np.zeros(0, np.int64),
+        )
+        move = {
+            (i, j): m
+            for e in edges
+            for i, j in (e, e[::-1])
+            for m, after in world.task.neighbours(states[i])
+            if after == states[j]
+        }
+        self.actions = {**move, (0, 1): move[(0, 3)]}  # the wrong one
+
+    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
+        self.avoided.append(tuple(avoid))
+        here = self.ids[self.world.read_state()]
+        paths = self.roadmap.shortest_paths(here, 1, max_plans, avoid)
+        steps = [list(itertools.pairwise(p)) for p in paths]
+        return [
+            VisualActionPlan(p, [], [self.actions[s] for s in st], [1.0] * len(st), [1] * len(st))
+            for p, st in zip(paths, steps, strict=True)
+        ]
+
+
+def test_a_step_whose_action_led_elsewhere_is_avoided_for_the_rest_of_the_task(world):
+    a = state(world, [["red", "green"], ["blue"], ["yellow"]])
+    goal = state(world, [["red"], ["blue", "green"], ["yellow"]])
+    aside = state(world, [["red"], ["blue"], ["yellow", "green"]])
+    dead_end = state(world, [["red", "green", "yellow"], ["blue"], []])
+    planner = WrongStepPlanner(world, [a, goal, aside, dead_end])
+    episode = run_episode(planner, world, a, goal, np.random.default_rng(0))
+    assert episode.success and len(episode.actions) == 4  # wrong, back, round by node 2
+    assert episode.states == [a, dead_end, a, aside, goal]
+    assert planner.avoided == [(), (), ((0, 1),), ((0, 1),)]
 
 
 def test_unreachable_and_illegal_stop_the_loop(world):
