@@ -283,9 +283,7 @@ def _known_nodes(
 ) -> list[int]:
     """`first`, then the nodes among the CANDIDATES nearest `z` that know it, nearest first."""
     near = roadmap.nearest_nodes(z, min(CANDIDATES, roadmap.num_nodes))
-    gaps = np.linalg.norm(
-        roadmap.nodes[near].astype(np.float64) - z, ord=metric_p(roadmap.config.metric), axis=1
-    )
+    gaps = pair_distances(roadmap.nodes[near].astype(np.float64), z, roadmap.config.metric)
     known = near[gaps <= np.asarray(calibration.node_thresholds)[near]]
     return [first, *(int(n) for n in known if n != first)]
 

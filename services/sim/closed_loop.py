@@ -15,6 +15,7 @@ import numpy as np
 
 from services.data.experience import Record, Recorder
 from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
+from shared.messages import MAX_AVOID
 from shared.plans import UnknownImageError, VisualActionPlan, most_confident
 from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
 
@@ -125,7 +126,9 @@ def run_episode(
     the image after), a refused one and each fresh look at an unchanged scene as no-action
     pairs. A refused action ends the episode, since re-planning from the unchanged scene would
     repeat it, unless the planner's `last_was_shortcut` says the plan was a one-off try
-    (TryShortcuts), which it will not give again.
+    (TryShortcuts), which it will not give again. A step whose action led elsewhere (the next
+    plan does not start at the node it was meant to reach) is given to every later plan of
+    the task as a step to avoid.
     """
     if goal_image is None:
         if goal is None:
@@ -145,12 +148,14 @@ def run_episode(
         if record is not None and last is not None and not np.array_equal(last, seen):
             record(last, None, seen, state, state)
         try:
-            plans = planner.plan(seen, goal_image, max_plans, expect=expect, avoid=tuple(missed))
-            if step is not None and plans and plans[0].nodes[0] != expect:
+            plans = planner.plan(
+                seen, goal_image, max_plans, expect=expect, avoid=missed[-MAX_AVOID:]
+            )
+            if step is not None and plans and plans[0].nodes[0] != expect and step not in missed:
                 missed.append(step)  # its action led elsewhere: no plan of this task takes it
                 if any(tuple(p.nodes[:2]) == step for p in plans):
                     plans = planner.plan(
-                        seen, goal_image, max_plans, expect=expect, avoid=tuple(missed)
+                        seen, goal_image, max_plans, expect=expect, avoid=missed[-MAX_AVOID:]
                     )
         except UnknownImageError as refused:  # never act on a scene the model does not know
             episode.reason = f"unknown_{refused.end}"
