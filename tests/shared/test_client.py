@@ -8,6 +8,7 @@ import pytest
 from services.apn import service as apn_service
 from services.encoder import service as encoder_service
 from services.planner import service as planner_service
+from services.planner.roadmap import Roadmap
 from services.runtime import ModelInfo, ServiceContext
 from services.sim.worlds import make_world
 from services.stack import free_port
@@ -121,3 +122,20 @@ def test_images_of_another_decoder_model_are_not_kept(services):
         assert once > 0 and sum(decoded) - before == 2 * once  # decoded again: nothing kept
     finally:
         decoder_model["id"] = ModelInfo.read(SHIPPED_MODEL).model_id
+
+
+def test_the_closed_loop_protocol_passes_what_the_loop_learned_by_name(services):
+    """run_episode calls `plan(start, goal, max_plans, expect=..., avoid=...)`: the sim
+    service's loop plans through this client, whose fourth parameter is `include_images`."""
+    session, task, _, _ = services
+    client = PlanningClient(session, task)
+    start, goal = start_and_goal()
+    first = client.plan(start, goal)[0]
+    assert first.images == []  # plans only, unless asked
+    step = tuple(first.nodes[:2])
+    again = client.plan(start, goal, 8, expect=first.nodes[0], avoid=[step])
+    assert again and again[0].images == []
+    shipped = Roadmap.load(SHIPPED_MODEL / "roadmap")
+    assert [p.nodes for p in again] == shipped.shortest_paths(
+        first.nodes[0], first.nodes[-1], 8, avoid=[step]
+    )

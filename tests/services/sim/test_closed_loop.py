@@ -87,7 +87,7 @@ class WrongStepPlanner:
         }
         self.actions = {**move, (0, 1): move[(0, 3)]}  # the wrong one
 
-    def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
+    def plan(self, start, goal, max_plans=8, *, expect=None, avoid=()):  # by name, as clients
         self.avoided.append(tuple(avoid))
         here = self.ids[self.world.read_state()]
         paths = self.roadmap.shortest_paths(here, 1, max_plans, avoid)
