@@ -266,15 +266,15 @@ def connect(
     lists = [
         _known_nodes(roadmap, calibration, z, n) for z, n in ((z_start, start), (z_goal, goal))
     ]
-    pairs = [
-        (i + j, s, g)
+    pairs = [  # fewest ranks, then the start's own: a closed loop's kept place stays
+        (i + j, i, s, g)
         for i, s in enumerate(lists[0])
         for j, g in enumerate(lists[1])
         if part[s] == part[g]
     ]
     if not pairs:
         return start, goal
-    _, s, g = min(pairs)
+    *_, s, g = min(pairs)
     return int(s), int(g)
 
 

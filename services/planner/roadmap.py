@@ -182,11 +182,12 @@ def fit_whitening(points: np.ndarray, point_node: np.ndarray) -> np.ndarray:
     residual = z - (sums / np.bincount(node)[:, None])[node]
     within = residual.T @ residual / dof
     mean_variance = float(np.trace(within)) / dim
-    if not mean_variance > 0:
+    if not mean_variance > 0:  # also NaN
         return np.zeros((0, 0), np.float32)
     within = (1 - WHITEN_SHRINK) * within + WHITEN_SHRINK * mean_variance * np.eye(dim)
     values, vectors = np.linalg.eigh(within)
-    return (vectors / np.sqrt(values)).astype(np.float32)
+    whitening = (vectors / np.sqrt(values)).astype(np.float32)
+    return whitening if np.isfinite(whitening).all() else np.zeros((0, 0), np.float32)
 
 
 def build_roadmap(
@@ -360,6 +361,8 @@ class Roadmap:
             )
         if not np.isfinite(self.whitening).all():
             raise RoadmapError("whitening must be finite")
+        if self.whitening.size and self.config.matching != "whitened":
+            raise RoadmapError(f"whitening given, but the config matches by {self.config.matching}")
         if not np.isfinite(self.nodes).all():
             raise RoadmapError("nodes must be finite")
         if (self.node_sizes < 1).any():
@@ -466,6 +469,36 @@ class Roadmap:
             self._adjacency = (indptr, cols[order])
         return self._adjacency
 
+    def _steps(self, avoid: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
+        """`avoid` as (from node, to node) pairs of valid node ids; RoadmapError otherwise."""
+        steps = []
+        for step in avoid:
+            try:
+                a, b = step
+            except (TypeError, ValueError):
+                raise RoadmapError(
+                    f"avoid must hold steps (from node, to node), got {step!r}"
+                ) from None
+            steps.append((self._node_id(a, "avoid"), self._node_id(b, "avoid")))
+        return steps
+
+    def _hops(
+        self, s: int, t: int, banned: list[tuple[int, int]]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The adjacency less the banned steps (indptr, indices), and every node's hops from
+        s and to t over it."""
+        indptr, indices = self._neighbour_arrays()
+        if banned:
+            indptr, indices = self._without(indptr, indices, np.array(banned, np.int64))
+        graph = sparse.csr_matrix(
+            (np.ones(len(indices)), indices, indptr), shape=(self.num_nodes, self.num_nodes)
+        )
+        hops = shortest_path(graph, directed=True, unweighted=True, indices=[s, t])
+        from_s, to_t = hops[0], hops[1]
+        if banned:  # no longer symmetric: hops to t run along the reversed steps
+            to_t = shortest_path(graph.T.tocsr(), directed=True, unweighted=True, indices=t)
+        return indptr, indices, from_s, to_t
+
     def _without(
         self, indptr: np.ndarray, indices: np.ndarray, steps: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -522,33 +555,29 @@ class Roadmap:
         Paths come in lexicographic order of their node ids, so the same roadmap always gives
         the same plans. [] when dst cannot be reached; [[src]] when src == dst or its twin.
         Twins count as one node: a path leaves from src and arrives at dst themselves, and
-        passes each group between by its first node. `avoid`: steps (from node, to node) no
-        path takes in that direction unless every path does (a closed loop's steps whose
-        action led elsewhere).
+        passes each group between by its first node. `avoid`: steps (from node, to node), oldest
+        first, that no path takes in that direction (a closed loop's steps whose action led
+        elsewhere); where no path is left, only the steps without which none would be are let
+        go (the newest kept first).
         """
         s = self._node_id(src, "src")
         t = self._node_id(dst, "dst")
         if isinstance(max_paths, bool) or not isinstance(max_paths, int) or max_paths < 1:
             raise RoadmapError(f"max_paths must be an integer >= 1, got {max_paths!r}")
+        banned = self._steps(avoid)
         src_node, dst_node = s, t
         s, t = (int(g) for g in self.twin_group[[s, t]])
         if s == t:
             return [[src_node]]
-        indptr, indices = self._neighbour_arrays()
-        banned = [tuple(self._node_id(n, "avoid") for n in step) for step in avoid]
-        if any(len(step) != 2 for step in banned):
-            raise RoadmapError("avoid must hold steps (from node, to node)")
-        if banned:
-            indptr, indices = self._without(indptr, indices, np.array(banned, np.int64))
-        graph = sparse.csr_matrix(
-            (np.ones(len(indices)), indices, indptr), shape=(self.num_nodes, self.num_nodes)
-        )
-        hops = shortest_path(graph, directed=True, unweighted=True, indices=[s, t])
-        from_s, to_t = hops[0], hops[1]
-        if banned:  # no longer symmetric: hops to t run along the reversed steps
-            to_t = shortest_path(graph.T.tocsr(), directed=True, unweighted=True, indices=t)
+        indptr, indices, from_s, to_t = self._hops(s, t, banned)
         if not math.isfinite(from_s[t]):
-            return self.shortest_paths(src_node, dst_node, max_paths) if banned else []
+            if not banned:
+                return []
+            kept: list[tuple[int, int]] = []
+            for step in reversed(banned):  # the newest first: each kept that leaves a way
+                if math.isfinite(self._hops(s, t, [*kept, step])[2][t]):
+                    kept.append(step)
+            return self.shortest_paths(src_node, dst_node, max_paths, kept[::-1])
 
         def onward(u: int) -> list[int]:
             # Neighbours one hop further from src and one hop closer to dst: on a shortest path.
@@ -577,14 +606,18 @@ class Roadmap:
         """Write roadmap.safetensors (arrays) and roadmap.json (config, scalars, stats)."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
-        # twins and whitening only where there are some, so that older readers read the rest
+        # twins and whitening only where there are some: a roadmap without them stays readable
+        # by code from before they existed
         keys = (*_ARRAY_KEYS, *(k for k in ("twins", "whitening") if getattr(self, k).size))
         arrays = {key: np.ascontiguousarray(getattr(self, key)) for key in keys}
         replace_atomically(out / ARRAYS_NAME, lambda tmp: save_file(arrays, str(tmp)))
         meta = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
-            "config": asdict(self.config),
+            # "matching" only where it is not the metric: older readers know no such key
+            "config": {
+                k: v for k, v in asdict(self.config).items() if k != "matching" or v != "metric"
+            },
             "epsilon": self.epsilon,
             "mu0": self.mu0,
             "sigma0": self.sigma0,

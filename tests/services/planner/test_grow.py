@@ -12,7 +12,7 @@ from services.planner.grow import (
 )
 from services.planner.knowing import calibrate
 from services.planner.members import Members
-from services.planner.roadmap import RoadmapConfig, build_roadmap, pair_distances
+from services.planner.roadmap import RoadmapConfig, build_roadmap, fit_whitening, pair_distances
 from shared.tasks import get_task
 
 TASK = get_task("box_stacking")
@@ -67,6 +67,7 @@ def test_growth_adds_the_edges_experience_shows_and_keeps_the_built_nodes():
     assert np.array_equal(grown.nodes[:4], roadmap.nodes)  # old nodes keep ids and latents
     # the spread within nodes is fitted again over the images they hold now
     assert roadmap.whitening.shape == grown.whitening.shape == (2, 2)
+    assert np.array_equal(grown.whitening, fit_whitening(everything.points, grown.point_node))
     assert not np.array_equal(grown.whitening, roadmap.whitening)
     assert len(grown.edges) == 3 and report["components"] == [2, 1]
     assert report["new_edges"] == 1 and report["no_change"] == 1

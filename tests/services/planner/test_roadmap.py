@@ -198,8 +198,8 @@ def test_roadmaps_saved_before_whitening_match_in_the_metric(tmp_path):
     z1, z2, a, _ = synthetic()
     build_roadmap(z1, z2, a, RoadmapConfig(matching="metric")).save(tmp_path)
     meta = json.loads((tmp_path / "roadmap.json").read_text())
-    del meta["config"]["matching"]
-    (tmp_path / "roadmap.json").write_text(json.dumps(meta))
+    # as older code wrote them, and can read them
+    assert "matching" not in meta["config"]
     assert "whitening" not in load_file(str(tmp_path / "roadmap.safetensors"))
     loaded = Roadmap.load(tmp_path)
     assert loaded.config.matching == "metric" and loaded.whitening.shape == (0, 0)
@@ -276,11 +276,17 @@ def test_shortest_paths_avoid_steps_in_their_direction_unless_every_path_takes_t
     assert grid.shortest_paths(0, 5, avoid=[(0, 1)]) == [[0, 3, 4, 5]]
     assert grid.shortest_paths(0, 5, avoid=[(4, 1)]) == grid.shortest_paths(0, 5)  # other way
     assert grid.shortest_paths(0, 2, avoid=[(1, 2)]) == [[0, 1, 4, 5, 2], [0, 3, 4, 5, 2]]
-    assert grid.shortest_paths(0, 5, avoid=[(0, 1), (0, 3)]) == grid.shortest_paths(0, 5)
+    # no way left: the steps without which there is none are let go, the newest kept first
+    assert grid.shortest_paths(0, 5, avoid=[(0, 1), (0, 3)]) == [[0, 1, 2, 5], [0, 1, 4, 5]]
+    bridge = make_roadmap(np.zeros((6, 2)), [(0, 1), (1, 2), (0, 3), (2, 3), (2, 5)])
+    assert bridge.shortest_paths(0, 5, avoid=[(0, 1), (2, 5)]) == [[0, 3, 2, 5]]
     with pytest.raises(RoadmapError, match="avoid must be a node id"):
         grid.shortest_paths(0, 5, avoid=[(0, 9)])
-    with pytest.raises(RoadmapError, match="avoid must hold steps"):
-        grid.shortest_paths(0, 5, avoid=[(0, 1, 2)])
+    with pytest.raises(RoadmapError, match="avoid must be a node id"):
+        grid.shortest_paths(0, 0, avoid=[(0, 9)])  # checked before the trivial answer
+    for bad in ([(0, 1, 2)], [5]):
+        with pytest.raises(RoadmapError, match="avoid must hold steps"):
+            grid.shortest_paths(0, 5, avoid=bad)
 
 
 def test_shortest_paths_are_all_shortest_paths_in_order():
@@ -376,6 +382,8 @@ def test_whitening_needs_enough_images_sharing_a_node():
         RoadmapConfig(matching="nearest")
     with pytest.raises(RoadmapError, match="whitening must have shape"):
         replace(built, whitening=np.eye(3, dtype=np.float32))
+    with pytest.raises(RoadmapError, match="whitening given, but the config matches by metric"):
+        replace(built, config=RoadmapConfig(matching="metric"))
 
 
 # ------------------------------------------------------------------------------------------
