@@ -51,8 +51,8 @@ from services.planner.roadmap import (
     ARRAYS_NAME,
     JSON_NAME,
     Roadmap,
-    fit_whitening,
     pair_distances,
+    whitening_for,
 )
 from shared.checkpoint import seal
 from shared.dataset import FIELDS, Dataset, load_dataset
@@ -332,9 +332,7 @@ def grow(
         point_node=node.astype(np.int64),
         stats=stats,
         twins=twins,
-        whitening=fit_whitening(everything.points, node)
-        if roadmap.config.matching == "whitened"
-        else roadmap.whitening,
+        whitening=whitening_for(roadmap.config, everything.points, node),
     )
     report["held"] = held - base // 2  # indices into the new tuples
     # Built nodes are known as before (recalibrating on what they let in would let the bounds

@@ -190,6 +190,13 @@ def fit_whitening(points: np.ndarray, point_node: np.ndarray) -> np.ndarray:
     return whitening if np.isfinite(whitening).all() else np.zeros((0, 0), np.float32)
 
 
+def whitening_for(config: RoadmapConfig, points: np.ndarray, point_node: np.ndarray) -> np.ndarray:
+    """fit_whitening where the config matches whitened, (0, 0) where it matches in the metric."""
+    if config.matching == "whitened":
+        return fit_whitening(points, point_node)
+    return np.zeros((0, 0), np.float32)
+
+
 def build_roadmap(
     z1: np.ndarray, z2: np.ndarray, a: np.ndarray, config: RoadmapConfig | None = None
 ) -> Roadmap:
@@ -292,9 +299,7 @@ def build_roadmap(
         edge_weights=final_weights,
         point_node=point_node,
         stats=stats,
-        whitening=fit_whitening(points, point_node)
-        if config.matching == "whitened"
-        else np.zeros((0, 0), np.float32),
+        whitening=whitening_for(config, points, point_node),
     )
 
 

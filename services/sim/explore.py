@@ -28,7 +28,6 @@ from services.planner.members import Members
 from services.planner.roadmap import Roadmap, pair_distances
 from services.sim.worlds import has_world, make_world
 from shared.appearance import trained_appearance
-from shared.graphs import node_components
 from shared.tasks.base import IllegalActionError, Task, WorldError
 from shared.tasks.spec import ArraySpec
 
@@ -62,9 +61,7 @@ class ExploreConfig:
 
 def shape_of(roadmap: Roadmap) -> tuple[np.ndarray, np.ndarray]:
     """(component of each node, twins joined; degree of each node)."""
-    k = roadmap.num_nodes
-    degree = np.bincount(roadmap.edges.ravel(), minlength=k)
-    return node_components(k, np.concatenate([roadmap.edges, roadmap.twins])), degree
+    return roadmap.component, np.bincount(roadmap.edges.ravel(), minlength=roadmap.num_nodes)
 
 
 def thinness(roadmap: Roadmap) -> np.ndarray:
