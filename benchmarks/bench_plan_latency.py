@@ -1,8 +1,11 @@
-"""POST /plan latency through the whole stack against the same work in one process.
+"""POST /plan latency and throughput through the whole stack against the same work in one process.
 
 Starts router, services and gateway (`lsr up`'s launcher) on free loopback ports with the
 shipped model, sends image-to-image plan requests at concurrency 1 and 8, and times the
 in-process ActionPlanner on the same requests (torch on one thread, as each service runs).
+Then, side by side in alternating rounds (this shared VM drifts from run to run): the overhead
+at concurrency 1 against the transport floor (`bench_transport_floor.py`), and the stack's
+throughput at concurrency 8 against what the same cores do in one process.
 
     .venv/bin/python benchmarks/bench_plan_latency.py [--requests 1000] [--pairs 50]
 """
@@ -25,53 +28,31 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services.encoder.checkpoint import encode_images, load_vae  # noqa: E402
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_transport_floor import Floor  # noqa: E402
+from plan_requests import percentiles, request_bodies  # noqa: E402
+
+from services.encoder.checkpoint import load_vae  # noqa: E402
 from services.gateway.planning import decode_b64_image  # noqa: E402
 from services.planner.action_plans import ActionPlanner  # noqa: E402
-from services.sim.worlds import make_world  # noqa: E402
+from services.planner.knowing import look  # noqa: E402
 from services.stack import Stack, StackConfig, free_port  # noqa: E402
-from shared.images import PngCache, png_b64  # noqa: E402
-from shared.tasks import get_task  # noqa: E402
+from shared.images import PngCache  # noqa: E402
 
 
-def percentiles(seconds: list[float]) -> dict[str, float]:
-    ms = np.array(seconds) * 1e3
-    return {
-        "p50_ms": round(float(np.percentile(ms, 50)), 2),
-        "p99_ms": round(float(np.percentile(ms, 99)), 2),
-        "mean_ms": round(float(ms.mean()), 2),
-    }
+class InProcess:
+    """The gateway's work without transport: decode inputs, plan, encode the PNGs (with the
+    gateway's PNG cache), torch on one thread as each service runs it."""
 
+    def __init__(self, model: Path) -> None:
+        torch.set_num_threads(1)
+        self.planner = ActionPlanner.from_model_dir(model)
+        self.pngs = PngCache()
 
-def request_bodies(pairs: int, size: int, seed: int) -> list[dict]:
-    task = get_task("box_stacking")
-    rng = np.random.default_rng(seed)
-    bodies = []
-    with make_world("box_stacking", size) as world:
-        for _ in range(pairs):
-            images = []
-            for state in (task.sample_state(rng), task.sample_state(rng)):
-                world.reset(state, rng)
-                images.append(png_b64(world.render()))
-            bodies.append(
-                {
-                    "task": "box_stacking",
-                    "start": {"image": images[0]},
-                    "goal": {"image": images[1]},
-                    "max_plans": 8,
-                }
-            )
-    return bodies
-
-
-def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[str, float]]:
-    """The gateway's work without transport: decode inputs, plan, encode the PNGs."""
-    torch.set_num_threads(1)
-    planner = ActionPlanner.from_model_dir(model)
-    pngs = PngCache()  # as the gateway does
-    encode, core, whole = [], [], []
-    for i in range(repeats + len(bodies)):  # the first pass over the bodies warms the caches
-        body = bodies[i % len(bodies)]
+    def one(self, body: dict) -> tuple[float, float, float]:
+        """Seconds of (encoding, encode to APN, the whole request with the image codecs)."""
+        planner = self.planner
         t0 = time.perf_counter()
         start = decode_b64_image("start.image", body["start"]["image"], planner.image_size)
         goal = decode_b64_image("goal.image", body["goal"]["image"], planner.image_size)
@@ -82,15 +63,35 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
         t2 = time.perf_counter()
         json.dumps(
             [
-                {"images": [pngs.b64(im) for im in p.images], **p.to_json(planner.task)}
+                {"images": [self.pngs.b64(im) for im in p.images], **p.to_json(planner.task)}
                 for p in plans
             ]
         )
-        t3 = time.perf_counter()
-        if i >= len(bodies):
-            encode.append(t_encoded - t1)
-            core.append(t2 - t1)
-            whole.append(t3 - t0)
+        return t_encoded - t1, t2 - t1, time.perf_counter() - t0
+
+    def rate(self, bodies: list[dict], requests: int, workers: int, torch_threads: int) -> float:
+        """Requests per second of `workers` threads sharing this planner."""
+        torch.set_num_threads(torch_threads)
+        try:
+            started = time.perf_counter()
+            with ThreadPoolExecutor(workers) as pool:
+                list(pool.map(self.one, (bodies[i % len(bodies)] for i in range(requests))))
+            return requests / (time.perf_counter() - started)
+        finally:
+            torch.set_num_threads(1)
+
+
+# What the same cores do in one process: 8 threads over one planner (torch on one thread each,
+# as a threaded server would run it), and one thread with torch on every core.
+IN_PROCESS_MODES = {"threads_8": (8, 1), "serial_all_cores": (1, os.cpu_count() or 1)}
+
+
+def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[str, float]]:
+    work = InProcess(model)
+    for body in bodies:  # the first pass over the bodies warms the caches
+        work.one(body)
+    timed = [work.one(bodies[i % len(bodies)]) for i in range(repeats)]
+    encode, core, whole = zip(*timed, strict=True)
     return {
         "encode": percentiles(encode),
         "encode_search_decode_apn": percentiles(core),
@@ -98,50 +99,33 @@ def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[
     }
 
 
-def in_process_throughput(model: Path, bodies: list[dict], requests: int) -> dict[str, float]:
-    """What the same cores do in one process: the gateway's work for `requests` requests, by 8
-    threads over one planner (torch on one thread each, as a threaded server would run it) and
-    by one thread with torch on every core; requests per second of each."""
-    planner = ActionPlanner.from_model_dir(model)
-    pngs = PngCache()
-
-    def one(body: dict) -> None:
-        start = decode_b64_image("start.image", body["start"]["image"], planner.image_size)
-        goal = decode_b64_image("goal.image", body["goal"]["image"], planner.image_size)
-        plans = planner.plan(start, goal, body["max_plans"])
-        task = planner.task
-        json.dumps([{"images": [pngs.b64(i) for i in p.images], **p.to_json(task)} for p in plans])
-
-    for body in bodies:  # warm the caches, as the stack's first pass does
-        one(body)
-    rates = {}
-    for name, threads, workers in (("threads_8", 1, 8), ("serial_all_cores", 0, 1)):
-        torch.set_num_threads(threads or os.cpu_count() or 1)
-        started = time.perf_counter()
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(one, (bodies[i % len(bodies)] for i in range(requests))))
-        rates[name] = round(requests / (time.perf_counter() - started), 1)
-    torch.set_num_threads(1)
-    return rates
-
-
 def idle_penalty(model: Path, bodies: list[dict], idle_s: float = 0.012) -> dict[str, dict]:
-    """The encoder's forward pass back to back, and after idling as each service does at
-    concurrency 1 (it waits ~12 ms for the other stages): on a shared VM, idling costs speed."""
+    """The encoder handler's work (`look`: encode and redraw two images) back to back, after
+    sleeping and after spinning as long as each service waits at concurrency 1 (~12 ms for the
+    other stages), alternately: on this shared VM, time away costs speed, asleep or not."""
     torch.set_num_threads(1)
     vae, _ = load_vae(model / "vae")
     body = bodies[0]
     images = np.stack([decode_b64_image(k, body[k]["image"], 64) for k in ("start", "goal")])
-    timings: dict[str, dict] = {}
-    for name, pause in (("back_to_back", 0.0), (f"after_{idle_s * 1e3:.0f}_ms_idle", idle_s)):
-        seconds = []
-        for _ in range(150):
-            time.sleep(pause)
-            t0 = time.perf_counter()
-            encode_images(vae, images)
-            seconds.append(time.perf_counter() - t0)
-        timings[name] = percentiles(seconds[20:])
-    return timings
+
+    def spin() -> None:
+        until = time.perf_counter() + idle_s
+        while time.perf_counter() < until:
+            pass
+
+    pauses = {
+        "back_to_back": lambda: None,
+        f"after_{idle_s * 1e3:.0f}_ms_asleep": lambda: time.sleep(idle_s),
+        f"after_{idle_s * 1e3:.0f}_ms_spinning": spin,
+    }
+    seconds: dict[str, list[float]] = {name: [] for name in pauses}
+    for i in range(600):
+        name = list(pauses)[i % len(pauses)]
+        pauses[name]()
+        t0 = time.perf_counter()
+        look(vae, images)
+        seconds[name].append(time.perf_counter() - t0)
+    return {name: percentiles(s[5:]) for name, s in seconds.items()}
 
 
 def cpu_seconds(stack: Stack) -> dict[str, float]:
@@ -158,8 +142,11 @@ def server_timing(header: str) -> dict[str, float]:
     return {name: float(ms) for name, ms in (m.split(";dur=") for m in header.split(", "))}
 
 
-def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int) -> dict:
-    """Latency and throughput; at p50, where the time went (the gateway's Server-Timing)."""
+def through_stack(
+    url: str, bodies: list[dict], requests: int, concurrency: int, warm: bool = True
+) -> dict:
+    """Latency and throughput; at p50, where the time went (the gateway's Server-Timing).
+    `warm`: first send every body once (every node decoded, connections open)."""
     errors: dict[str, int] = {}
     latencies: list[float] = []
     timings: list[dict[str, float]] = []
@@ -182,7 +169,8 @@ def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int)
                 else:
                     errors[key] = errors.get(key, 0) + 1
 
-    worker(range(len(bodies)))  # warm-up: every node decoded once, connections open
+    if warm:
+        worker(range(len(bodies)))
     latencies.clear()
     timings.clear()
     errors.clear()
@@ -197,11 +185,85 @@ def through_stack(url: str, bodies: list[dict], requests: int, concurrency: int)
         "errors": sum(errors.values()),
         "error_kinds": errors,
         "requests_per_s": round(requests / elapsed, 1),
+        "seconds": elapsed,
         **percentiles(latencies),
         "p50_breakdown_ms": {
             name: round(float(np.median([t[name] for t in timings if name in t])), 2)
             for name in dict.fromkeys(name for t in timings for name in t)
         },
+    }
+
+
+def side_by_side(
+    model: Path, url: str, bodies: list[dict], rounds: int = 8, per_round: int = 40
+) -> dict:
+    """The overhead at concurrency 1 against the transport floor, measured side by side: rounds
+    of the same requests in process, through the stack, and of the floor's calls (its HTTP
+    handler idling as long as the gateway's median so far). Alternating them lets this VM's
+    drift (the in-process p50 has moved from 7.7 to 15.9 ms between runs) reach all three alike.
+    The first two of each block warm it up and are left out."""
+    work = InProcess(model)
+    for body in bodies:
+        work.one(body)
+    local: list[float] = []
+    stack: list[float] = []
+    gateway: list[float] = []
+    parts: dict[str, list[float]] = {"encode_call": [], "small_call": [], "http": []}
+    per_round_margin = []
+    with Floor() as floor, httpx.Client(base_url=url, timeout=30) as client:
+        for _ in range(rounds):
+            local += [work.one(bodies[i % len(bodies)])[2] for i in range(per_round)][2:]
+            stack_block = []
+            for i in range(per_round):
+                t0 = time.perf_counter()
+                reply = client.post("/plan", json=bodies[i % len(bodies)])
+                stack_block.append(time.perf_counter() - t0)
+                assert reply.status_code == 200 and reply.json()["plans"], reply.text
+                gateway.append(server_timing(reply.headers["server-timing"])["gateway"] / 1e3)
+            stack += stack_block[2:]
+            idle_s = float(np.median(gateway))
+            round_floor = floor.plan_floor(idle_s, per_round)
+            for name in parts:
+                parts[name].append(round_floor[name])
+            overhead = (np.median(stack_block[2:]) - np.median(local[-(per_round - 2) :])) * 1e3
+            per_round_margin.append(round(float(overhead - round_floor["plan"]), 2))
+    p50 = {name: float(np.median(v)) for name, v in parts.items()}
+    floor_ms = p50["encode_call"] + 2 * p50["small_call"] + p50["http"]
+    overhead_ms = (np.median(stack) - np.median(local)) * 1e3
+    return {
+        "in_process_p50_ms": percentiles(local)["p50_ms"],
+        "stack_p50_ms": percentiles(stack)["p50_ms"],
+        "overhead_ms": round(float(overhead_ms), 2),
+        "floor_ms": round(floor_ms, 2),
+        "floor_parts_ms": {name: round(v, 2) for name, v in p50.items()},
+        "http_handler_idle_ms": round(float(np.median(gateway)) * 1e3, 2),
+        "overhead_minus_floor_ms": round(float(overhead_ms - floor_ms), 2),
+        "per_round_overhead_minus_floor_ms": per_round_margin,
+    }
+
+
+def throughput_side_by_side(
+    model: Path, url: str, bodies: list[dict], rounds: int = 4, per_round: int = 250
+) -> dict:
+    """The stack at concurrency 8 against the same cores in one process (`IN_PROCESS_MODES`),
+    in alternating rounds as `side_by_side`; requests per second over all rounds."""
+    work = InProcess(model)
+    for body in bodies:  # warm the caches, as the stack's first pass did
+        work.one(body)
+    seconds = dict.fromkeys(["stack", *IN_PROCESS_MODES], 0.0)
+    errors = 0
+    for _ in range(rounds):
+        through = through_stack(url, bodies, per_round, 8, warm=False)
+        seconds["stack"] += through["seconds"]
+        errors += through["errors"]
+        for mode, (workers, threads) in IN_PROCESS_MODES.items():
+            seconds[mode] += per_round / work.rate(bodies, per_round, workers, threads)
+    rates = {name: round(rounds * per_round / s, 1) for name, s in seconds.items()}
+    best = max(rates[mode] for mode in IN_PROCESS_MODES)
+    return {
+        "requests_per_s": rates,
+        "stack_errors": errors,
+        "stack_share_of_better": round(rates["stack"] / best, 3),
     }
 
 
@@ -219,7 +281,7 @@ def main() -> None:
     before = in_process(args.model, bodies, repeats=200)
     print("in process (before):", json.dumps(before), flush=True)
     idle = idle_penalty(args.model, bodies)
-    print("encoder forward, 2 images:", json.dumps(idle), flush=True)
+    print("encoder look, 2 images:", json.dumps(idle), flush=True)
 
     with tempfile.TemporaryDirectory() as logs:
         config = StackConfig(
@@ -237,15 +299,12 @@ def main() -> None:
                 name: round((used[name] - cpu[name]) * 1e3 / args.requests, 2) for name in used
             }
             print("stack, concurrency 8:", json.dumps(eight), flush=True)
+            paired = side_by_side(args.model, config.url, bodies)
+            print("concurrency 1, side by side:", json.dumps(paired), flush=True)
+            rate = throughput_side_by_side(args.model, config.url, bodies)
+            print("concurrency 8, side by side:", json.dumps(rate), flush=True)
     after = in_process(args.model, bodies, repeats=200)
     print("in process (after):", json.dumps(after), flush=True)
-    rate = in_process_throughput(args.model, bodies, args.requests)
-    best = max(rate.values())
-    print(
-        f"in process, requests/s: {json.dumps(rate)}; the stack at concurrency 8 reaches "
-        f"{eight['requests_per_s'] / best:.0%} of the better",
-        flush=True,
-    )
     ratios = [one["p50_ms"] / t["with_image_codecs"]["p50_ms"] for t in (before, after)]
     print(
         "p50 through the stack / in process (same work incl. image codecs): "
@@ -256,8 +315,8 @@ def main() -> None:
         "encoder_idle_penalty": idle,
         "stack_c1": one,
         "stack_c8": eight,
-        "in_process_requests_per_s": rate,
-        "c8_share_of_in_process": round(eight["requests_per_s"] / best, 3),
+        "c8_side_by_side": rate,
+        "c1_side_by_side": paired,
     }
     print(json.dumps({**summary, "p50_ratios": [round(r, 2) for r in ratios]}))
 
