@@ -4,8 +4,8 @@ Starts router, services and gateway (`lsr up`'s launcher) on free loopback ports
 shipped model, sends image-to-image plan requests at concurrency 1 and 8, and times the
 in-process ActionPlanner on the same requests (torch on one thread, as each service runs).
 Then, side by side in alternating rounds (this shared VM drifts from run to run): the overhead
-at concurrency 1 against the transport floor (`bench_transport_floor.py`), and the stack's
-throughput at concurrency 8 against what the same cores do in one process.
+at concurrency 1 against the transport floor (`bench_transport_floor.py`: a null /plan), and
+the stack's throughput at concurrency 8 against what the same cores do in one process.
 
     .venv/bin/python benchmarks/bench_plan_latency.py [--requests 1000] [--pairs 50]
 """
@@ -30,8 +30,8 @@ sys.path.insert(0, str(ROOT))
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_transport_floor import Floor  # noqa: E402
-from plan_requests import percentiles, request_bodies  # noqa: E402
+from bench_transport_floor import CALLS, Floor  # noqa: E402
+from plan_requests import percentiles, request_bodies, server_timing  # noqa: E402
 
 from services.encoder.checkpoint import load_vae  # noqa: E402
 from services.gateway.planning import decode_b64_image  # noqa: E402
@@ -45,10 +45,13 @@ class InProcess:
     """The gateway's work without transport: decode inputs, plan, encode the PNGs (with the
     gateway's PNG cache), torch on one thread as each service runs it."""
 
-    def __init__(self, model: Path) -> None:
+    def __init__(self, model: Path, bodies: list[dict]) -> None:
         torch.set_num_threads(1)
         self.planner = ActionPlanner.from_model_dir(model)
         self.pngs = PngCache()
+        self.bodies = bodies
+        for body in bodies:  # decodes every node and PNG once, as the stack's first pass does
+            self.one(body)
 
     def one(self, body: dict) -> tuple[float, float, float]:
         """Seconds of (encoding, encode to APN, the whole request with the image codecs)."""
@@ -69,29 +72,32 @@ class InProcess:
         )
         return t_encoded - t1, t2 - t1, time.perf_counter() - t0
 
-    def rate(self, bodies: list[dict], requests: int, workers: int, torch_threads: int) -> float:
-        """Requests per second of `workers` threads sharing this planner."""
+    def run(self, requests: int) -> list[tuple[float, float, float]]:
+        return [self.one(self.bodies[i % len(self.bodies)]) for i in range(requests)]
+
+    def seconds(self, requests: int, workers: int, torch_threads: int) -> float:
+        """How long `workers` threads sharing this planner take for `requests` requests."""
+        threads = torch.get_num_threads()
         torch.set_num_threads(torch_threads)
         try:
             started = time.perf_counter()
+            bodies = (self.bodies[i % len(self.bodies)] for i in range(requests))
             with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(self.one, (bodies[i % len(bodies)] for i in range(requests))))
-            return requests / (time.perf_counter() - started)
+                list(pool.map(self.one, bodies))
+            return time.perf_counter() - started
         finally:
-            torch.set_num_threads(1)
+            torch.set_num_threads(threads)
 
 
 # What the same cores do in one process: 8 threads over one planner (torch on one thread each,
 # as a threaded server would run it), and one thread with torch on every core.
-IN_PROCESS_MODES = {"threads_8": (8, 1), "serial_all_cores": (1, os.cpu_count() or 1)}
+CORES = len(os.sched_getaffinity(0))
+IN_PROCESS_MODES = {"threads_8": (8, 1), "serial_all_cores": (1, CORES)}
 
 
 def in_process(model: Path, bodies: list[dict], repeats: int) -> dict[str, dict[str, float]]:
-    work = InProcess(model)
-    for body in bodies:  # the first pass over the bodies warms the caches
-        work.one(body)
-    timed = [work.one(bodies[i % len(bodies)]) for i in range(repeats)]
-    encode, core, whole = zip(*timed, strict=True)
+    """Percentiles of `InProcess.one`'s parts over `repeats` requests after the warm-up."""
+    encode, core, whole = zip(*InProcess(model, bodies).run(repeats), strict=True)
     return {
         "encode": percentiles(encode),
         "encode_search_decode_apn": percentiles(core),
@@ -119,8 +125,9 @@ def idle_penalty(model: Path, bodies: list[dict], idle_s: float = 0.012) -> dict
         f"after_{idle_s * 1e3:.0f}_ms_spinning": spin,
     }
     seconds: dict[str, list[float]] = {name: [] for name in pauses}
+    names = list(pauses)
     for i in range(600):
-        name = list(pauses)[i % len(pauses)]
+        name = names[i % len(names)]
         pauses[name]()
         t0 = time.perf_counter()
         look(vae, images)
@@ -138,10 +145,6 @@ def cpu_seconds(stack: Stack) -> dict[str, float]:
     return used
 
 
-def server_timing(header: str) -> dict[str, float]:
-    return {name: float(ms) for name, ms in (m.split(";dur=") for m in header.split(", "))}
-
-
 def through_stack(
     url: str, bodies: list[dict], requests: int, concurrency: int, warm: bool = True
 ) -> dict:
@@ -149,6 +152,7 @@ def through_stack(
     `warm`: first send every body once (every node decoded, connections open)."""
     errors: dict[str, int] = {}
     latencies: list[float] = []
+    sizes: list[int] = []
     timings: list[dict[str, float]] = []
 
     def worker(indices: range) -> None:
@@ -164,6 +168,7 @@ def through_stack(
                     key = type(exc).__name__
                 if key == "ok":
                     latencies.append(latency)
+                    sizes.append(len(reply.content))
                     timing = server_timing(reply.headers["server-timing"])
                     timings.append({**timing, "http_and_client": latency * 1e3 - timing["gateway"]})
                 else:
@@ -172,6 +177,7 @@ def through_stack(
     if warm:
         worker(range(len(bodies)))
     latencies.clear()
+    sizes.clear()
     timings.clear()
     errors.clear()
     started = time.perf_counter()
@@ -186,6 +192,8 @@ def through_stack(
         "error_kinds": errors,
         "requests_per_s": round(requests / elapsed, 1),
         "seconds": elapsed,
+        "ok": len(latencies),
+        "reply_bytes_p50": int(np.median(sizes)) if sizes else 0,
         **percentiles(latencies),
         "p50_breakdown_ms": {
             name: round(float(np.median([t[name] for t in timings if name in t])), 2)
@@ -195,50 +203,109 @@ def through_stack(
 
 
 def side_by_side(
-    model: Path, url: str, bodies: list[dict], rounds: int = 8, per_round: int = 40
+    model: Path,
+    url: str,
+    bodies: list[dict],
+    handler_ms: dict[str, float],
+    reply_bytes: int,
+    rounds: int = 8,
+    per_round: int = 40,
 ) -> dict:
-    """The overhead at concurrency 1 against the transport floor, measured side by side: rounds
-    of the same requests in process, through the stack, and of the floor's calls (its HTTP
-    handler idling as long as the gateway's median so far). Alternating them lets this VM's
-    drift (the in-process p50 has moved from 7.7 to 15.9 ms between runs) reach all three alike.
-    The first two of each block warm it up and are left out."""
-    work = InProcess(model)
-    for body in bodies:
-        work.one(body)
-    local: list[float] = []
+    """The overhead at concurrency 1 against the transport floor (`bench_transport_floor.py`: a
+    null /plan whose services sleep `handler_ms`, replying `reply_bytes`), measured in rounds
+    of `per_round` requests in process, through the stack and through the null /plan, in turn
+    (each round starts with the next), so that this VM's drift reaches all three alike. The
+    first two requests of each block warm it and are left out."""
+    work = InProcess(model, bodies)
+    warm = 2
+    local: list[tuple[float, float, float]] = []
     stack: list[float] = []
-    gateway: list[float] = []
-    parts: dict[str, list[float]] = {"encode_call": [], "small_call": [], "http": []}
-    per_round_margin = []
-    with Floor() as floor, httpx.Client(base_url=url, timeout=30) as client:
-        for _ in range(rounds):
-            local += [work.one(bodies[i % len(bodies)])[2] for i in range(per_round)][2:]
-            stack_block = []
+    stack_timing: list[dict[str, float]] = []
+    floor_parts: dict[str, list[float]] = {"plan": [], "calls": [], "http": []}
+    margins: list[float] = []
+    with Floor(handler_ms, reply_bytes) as floor, httpx.Client(base_url=url, timeout=30) as client:
+
+        def through_stack_block() -> None:
+            latencies = []
             for i in range(per_round):
                 t0 = time.perf_counter()
                 reply = client.post("/plan", json=bodies[i % len(bodies)])
-                stack_block.append(time.perf_counter() - t0)
+                latency = time.perf_counter() - t0
                 assert reply.status_code == 200 and reply.json()["plans"], reply.text
-                gateway.append(server_timing(reply.headers["server-timing"])["gateway"] / 1e3)
-            stack += stack_block[2:]
-            idle_s = float(np.median(gateway))
-            round_floor = floor.plan_floor(idle_s, per_round)
-            for name in parts:
-                parts[name].append(round_floor[name])
-            overhead = (np.median(stack_block[2:]) - np.median(local[-(per_round - 2) :])) * 1e3
-            per_round_margin.append(round(float(overhead - round_floor["plan"]), 2))
-    p50 = {name: float(np.median(v)) for name, v in parts.items()}
-    floor_ms = p50["encode_call"] + 2 * p50["small_call"] + p50["http"]
-    overhead_ms = (np.median(stack) - np.median(local)) * 1e3
+                if i >= warm:
+                    latencies.append(latency)
+                    timing = server_timing(reply.headers["server-timing"])
+                    stack_timing.append(
+                        {**timing, "http_and_client": latency * 1e3 - timing["gateway"]}
+                    )
+            stack.extend(latencies)
+
+        def in_process_block() -> None:
+            local.extend(work.run(per_round)[warm:])
+
+        def floor_block() -> None:
+            for name, seconds in floor.plans(per_round).items():
+                floor_parts[name].extend(seconds[warm:])
+
+        blocks = [in_process_block, through_stack_block, floor_block]
+        for r in range(rounds):
+            for block in blocks[r % 3 :] + blocks[: r % 3]:
+                block()
+            kept = per_round - warm
+            overhead = np.median(stack[-kept:]) - np.median([w for _, _, w in local[-kept:]])
+            margins.append(round(float(overhead - np.median(floor_parts["plan"][-kept:])) * 1e3, 2))
+
+    def p50(values: list[float]) -> float:
+        return round(float(np.median(values)) * 1e3, 2)
+
+    def timing_p50(name: str) -> float:
+        return round(float(np.median([t[name] for t in stack_timing])), 2)
+
+    operations = ("encode", "paths", "propose")
+    overhead_ms = p50(stack) - p50([w for _, _, w in local])
     return {
-        "in_process_p50_ms": percentiles(local)["p50_ms"],
-        "stack_p50_ms": percentiles(stack)["p50_ms"],
-        "overhead_ms": round(float(overhead_ms), 2),
-        "floor_ms": round(floor_ms, 2),
-        "floor_parts_ms": {name: round(v, 2) for name, v in p50.items()},
-        "http_handler_idle_ms": round(float(np.median(gateway)) * 1e3, 2),
-        "overhead_minus_floor_ms": round(float(overhead_ms - floor_ms), 2),
-        "per_round_overhead_minus_floor_ms": per_round_margin,
+        "in_process_p50_ms": p50([w for _, _, w in local]),
+        "stack_p50_ms": p50(stack),
+        "overhead_ms": round(overhead_ms, 2),
+        "floor_ms": p50(floor_parts["plan"]),
+        "overhead_minus_floor_ms": round(overhead_ms - p50(floor_parts["plan"]), 2),
+        "per_round_overhead_minus_floor_ms": margins,
+        "median_of_rounds_ms": round(float(np.median(margins)), 2),
+        # where the difference lies, from the same rounds (ms, p50)
+        "floor_calls_beyond_handlers_ms": p50(floor_parts["calls"]),
+        "stack_calls_beyond_handlers_ms": round(
+            float(
+                np.median(
+                    [
+                        sum(t.get(o, 0.0) - t.get(f"{o}-handler", 0.0) for o in operations)
+                        for t in stack_timing
+                    ]
+                )
+            ),
+            2,
+        ),
+        "floor_http_ms": p50(floor_parts["http"]),
+        "stack_http_and_client_ms": timing_p50("http_and_client"),
+        "in_process_encode_ms": p50([e for e, _, _ in local]),
+        "stack_encode_handler_ms": timing_p50("encode-handler"),
+        "in_process_search_and_apn_ms": p50([c - e for e, c, _ in local]),
+        "stack_paths_and_propose_handlers_ms": round(
+            float(
+                np.median(
+                    [t["paths-handler"] + t.get("propose-handler", 0.0) for t in stack_timing]
+                )
+            ),
+            2,
+        ),
+        "in_process_image_codecs_ms": p50([w - c for _, c, w in local]),
+        "stack_gateway_beyond_calls_ms": round(
+            float(
+                np.median(
+                    [t["gateway"] - sum(t.get(o, 0.0) for o in operations) for t in stack_timing]
+                )
+            ),
+            2,
+        ),
     }
 
 
@@ -246,19 +313,29 @@ def throughput_side_by_side(
     model: Path, url: str, bodies: list[dict], rounds: int = 4, per_round: int = 250
 ) -> dict:
     """The stack at concurrency 8 against the same cores in one process (`IN_PROCESS_MODES`),
-    in alternating rounds as `side_by_side`; requests per second over all rounds."""
-    work = InProcess(model)
-    for body in bodies:  # warm the caches, as the stack's first pass did
-        work.one(body)
+    in rounds that each start with the next of them, as `side_by_side`; requests per second
+    over all rounds (the stack's: answered ones only)."""
+    work = InProcess(model, bodies)
     seconds = dict.fromkeys(["stack", *IN_PROCESS_MODES], 0.0)
-    errors = 0
-    for _ in range(rounds):
+    served = errors = 0
+
+    def stack_round() -> None:
+        nonlocal served, errors
         through = through_stack(url, bodies, per_round, 8, warm=False)
         seconds["stack"] += through["seconds"]
+        served += through["ok"]
         errors += through["errors"]
-        for mode, (workers, threads) in IN_PROCESS_MODES.items():
-            seconds[mode] += per_round / work.rate(bodies, per_round, workers, threads)
-    rates = {name: round(rounds * per_round / s, 1) for name, s in seconds.items()}
+
+    def in_process_round(mode: str) -> None:
+        workers, threads = IN_PROCESS_MODES[mode]
+        seconds[mode] += work.seconds(per_round, workers, threads)
+
+    turns = [stack_round, *(lambda m=m: in_process_round(m) for m in IN_PROCESS_MODES)]
+    for r in range(rounds):
+        for turn in turns[r % len(turns) :] + turns[: r % len(turns)]:
+            turn()
+    rates = {mode: round(rounds * per_round / seconds[mode], 1) for mode in IN_PROCESS_MODES}
+    rates["stack"] = round(served / seconds["stack"], 1)
     best = max(rates[mode] for mode in IN_PROCESS_MODES)
     return {
         "requests_per_s": rates,
@@ -299,7 +376,10 @@ def main() -> None:
                 name: round((used[name] - cpu[name]) * 1e3 / args.requests, 2) for name in used
             }
             print("stack, concurrency 8:", json.dumps(eight), flush=True)
-            paired = side_by_side(args.model, config.url, bodies)
+            handler_ms = {op: one["p50_breakdown_ms"][f"{op}-handler"] for op in CALLS}
+            paired = side_by_side(
+                args.model, config.url, bodies, handler_ms, one["reply_bytes_p50"]
+            )
             print("concurrency 1, side by side:", json.dumps(paired), flush=True)
             rate = throughput_side_by_side(args.model, config.url, bodies)
             print("concurrency 8, side by side:", json.dumps(rate), flush=True)
