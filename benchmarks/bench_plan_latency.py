@@ -18,6 +18,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -255,56 +256,39 @@ def side_by_side(
             overhead = np.median(stack[-kept:]) - np.median([w for _, _, w in local[-kept:]])
             margins.append(round(float(overhead - np.median(floor_parts["plan"][-kept:])) * 1e3, 2))
 
-    def p50(values: list[float]) -> float:
-        return round(float(np.median(values)) * 1e3, 2)
+    def p50(seconds: list[float]) -> float:
+        return round(float(np.median(seconds)) * 1e3, 2)
 
-    def timing_p50(name: str) -> float:
-        return round(float(np.median([t[name] for t in stack_timing])), 2)
+    def timing_p50(part: Callable[[dict[str, float]], float]) -> float:
+        return round(float(np.median([part(t) for t in stack_timing])), 2)
 
-    operations = ("encode", "paths", "propose")
-    overhead_ms = p50(stack) - p50([w for _, _, w in local])
+    whole = [w for _, _, w in local]
+    overhead_ms = p50(stack) - p50(whole)
     return {
-        "in_process_p50_ms": p50([w for _, _, w in local]),
+        "in_process_p50_ms": p50(whole),
         "stack_p50_ms": p50(stack),
         "overhead_ms": round(overhead_ms, 2),
         "floor_ms": p50(floor_parts["plan"]),
         "overhead_minus_floor_ms": round(overhead_ms - p50(floor_parts["plan"]), 2),
         "per_round_overhead_minus_floor_ms": margins,
         "median_of_rounds_ms": round(float(np.median(margins)), 2),
-        # where the difference lies, from the same rounds (ms, p50)
+        # where the difference lies, from the same rounds (ms, p50; no propose call when start
+        # and goal match one node)
         "floor_calls_beyond_handlers_ms": p50(floor_parts["calls"]),
-        "stack_calls_beyond_handlers_ms": round(
-            float(
-                np.median(
-                    [
-                        sum(t.get(o, 0.0) - t.get(f"{o}-handler", 0.0) for o in operations)
-                        for t in stack_timing
-                    ]
-                )
-            ),
-            2,
+        "stack_calls_beyond_handlers_ms": timing_p50(
+            lambda t: sum(t.get(c, 0.0) - t.get(f"{c}-handler", 0.0) for c in CALLS)
         ),
         "floor_http_ms": p50(floor_parts["http"]),
-        "stack_http_and_client_ms": timing_p50("http_and_client"),
+        "stack_http_and_client_ms": timing_p50(lambda t: t["http_and_client"]),
         "in_process_encode_ms": p50([e for e, _, _ in local]),
-        "stack_encode_handler_ms": timing_p50("encode-handler"),
+        "stack_encode_handler_ms": timing_p50(lambda t: t["encode-handler"]),
         "in_process_search_and_apn_ms": p50([c - e for e, c, _ in local]),
-        "stack_paths_and_propose_handlers_ms": round(
-            float(
-                np.median(
-                    [t["paths-handler"] + t.get("propose-handler", 0.0) for t in stack_timing]
-                )
-            ),
-            2,
+        "stack_paths_and_propose_handlers_ms": timing_p50(
+            lambda t: t["paths-handler"] + t.get("propose-handler", 0.0)
         ),
         "in_process_image_codecs_ms": p50([w - c for _, c, w in local]),
-        "stack_gateway_beyond_calls_ms": round(
-            float(
-                np.median(
-                    [t["gateway"] - sum(t.get(o, 0.0) for o in operations) for t in stack_timing]
-                )
-            ),
-            2,
+        "stack_gateway_beyond_calls_ms": timing_p50(
+            lambda t: t["gateway"] - sum(t.get(c, 0.0) for c in CALLS)
         ),
     }
 
