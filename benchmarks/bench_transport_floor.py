@@ -11,7 +11,7 @@ VM). The floor is the client's latency less those sleeps, as the replies report 
 `bench_plan_latency.py` measures this floor beside the stack, with the stack's own handler
 times and reply size.
 
-    .venv/bin/python benchmarks/bench_transport_floor.py [--handler-ms 9 1 0.8] [--reply-kb 45]
+    .venv/bin/python benchmarks/bench_transport_floor.py [--handler-ms 9 1 0.8] [--reply-kb 55]
 """
 
 from __future__ import annotations
@@ -231,7 +231,7 @@ def main() -> None:
         metavar=("ENCODE", "PATHS", "PROPOSE"),
         help="how long each service sleeps: about the stack's handlers at concurrency 1",
     )
-    parser.add_argument("--reply-kb", type=float, default=45.0, help="the reply's size")
+    parser.add_argument("--reply-kb", type=float, default=55.0, help="the reply's size")
     parser.add_argument("--requests", type=int, default=300)
     args = parser.parse_args()
     if args.role == "echo":
