@@ -11,10 +11,10 @@ import argparse
 import sys
 from collections.abc import Callable
 
-from services.cli import data, evaluate, plan, roadmap, robot, serve, sim, task, train
+from services.cli import data, evaluate, plan, roadmap, robot, serve, sim, task, train, workcell
 
 Handler = Callable[[argparse.Namespace], int]
-GROUPS = (task, data, train, roadmap, evaluate, plan, sim, serve, robot)
+GROUPS = (task, data, train, roadmap, evaluate, plan, sim, serve, robot, workcell)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,15 +14,18 @@ number of workers, and the physics draws stay those of `clean`.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
 from services.sim.rendering import OffscreenCamera, mujoco
+from services.sim.workcell import Pinhole
 from shared.appearance import (
     CLEAN,
     Appearance,
@@ -196,19 +199,27 @@ class SceneModder:
             m.mat_texrepeat[self._mat] = 1 / (TEXEL_M * np.array([width, height]))
         self._upload()
 
-    def render(self, sample: EpisodeSample) -> np.ndarray:
+    @contextlib.contextmanager
+    def applied(self, sample: EpisodeSample) -> Iterator[None]:
+        """The scene changed by `sample` inside the block, exactly restored after it."""
         saved = self._saved()
         try:
             self._apply(sample)
-            return self.camera.render(self.data)
+            yield
         finally:
             self._restore(saved)
+
+    def render(self, sample: EpisodeSample, camera: OffscreenCamera | None = None) -> np.ndarray:
+        """One render by `camera` (default the world's; any other of the same named camera,
+        the cell's wider frame, say) with the sample applied."""
+        with self.applied(sample):
+            return (camera or self.camera).render(self.data)
 
 
 class AppearanceWorld(World):
     """`world` seen at an appearance level; everything else is the world's own."""
 
-    def __init__(self, world: World, appearance: str = CLEAN) -> None:
+    def __init__(self, world: World, appearance: str | Appearance = CLEAN) -> None:
         self.world = world
         self._modder: SceneModder | None = None
         self._rng = np.random.default_rng([0, STREAM])  # until the first reset
@@ -216,9 +227,12 @@ class AppearanceWorld(World):
         self.appearance: Appearance = get_appearance(CLEAN)
         self.use(appearance)
 
-    def use(self, appearance: str) -> None:
-        """Switch level (a served world takes each request's); the next reset draws it."""
-        self.appearance = get_appearance(appearance)
+    def use(self, appearance: str | Appearance) -> None:
+        """Switch level (a served world takes each request's; a benchmark, one of its own
+        ranges); the next reset draws it."""
+        if isinstance(appearance, str):
+            appearance = get_appearance(appearance)
+        self.appearance = appearance
         if not self.appearance.is_clean and self._modder is None:
             self._modder = SceneModder(self.world)
         self._episode = self.appearance.draw_episode(self._rng)
@@ -272,10 +286,31 @@ class AppearanceWorld(World):
     def render(self) -> np.ndarray:
         if self.appearance.is_clean:
             return self.world.render()
+        return self._look(None)
+
+    def frame(self) -> np.ndarray:
+        """The cell's camera frame at this episode's look (the camera's pose draw moves the
+        frame as it moves the view: one camera)."""
+        camera = getattr(self.world, "frame_camera", None)
+        if self.appearance.is_clean or camera is None:
+            return self.world.frame() if camera is not None else self.render()
+        return self._look(camera)
+
+    def _look(self, camera: OffscreenCamera | None) -> np.ndarray:
         assert self._modder is not None and self._episode is not None
-        image = self._modder.render(self._episode)
+        image = self._modder.render(self._episode, camera)
         sample = self.appearance.draw_image(self._rng)
         return image if sample is None else post_process(image, sample)
+
+    def pinhole(self) -> Pinhole:
+        """The camera as this episode's draw posed it (the nominal one at clean): the truth a
+        registration is measured against."""
+        base = self.world
+        name = base.camera.camera
+        if self._modder is None or self._episode is None:
+            return Pinhole.of(base.model, base.data, name)
+        with self._modder.applied(self._episode):
+            return Pinhole.of(base.model, base.data, name)
 
     @property
     def episode_sample(self) -> EpisodeSample | None:

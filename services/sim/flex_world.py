@@ -20,6 +20,7 @@ import numpy as np
 
 from services.sim.rendering import OffscreenCamera, mujoco
 from services.sim.settled import SettledLibrary
+from services.sim.workcell import FrameCamera, with_markers
 from shared.deadlines import check_deadline
 from shared.tasks.base import InvalidActionError, World, WorldError
 from shared.tasks.folding import ClothAction, FoldingTask, Folds, Pixel
@@ -60,9 +61,10 @@ class FlexWorld(World[Folds, ClothAction]):
         models', then the cache); without one, each state is folded once, on first use."""
         self.task = task
         self.image_size = image_size
-        self.model = mujoco.MjModel.from_xml_string(xml, assets)
+        self.model = mujoco.MjModel.from_xml_string(with_markers(xml, task.workcell), assets)
         self.data = mujoco.MjData(self.model)
         self.camera = OffscreenCamera(self.model, "top", image_size)
+        self.frame_camera = FrameCamera(self.model, "top") if task.workcell else None
         first = int(self.model.flex_vertadr[0])
         count = int(self.model.flex_vertnum[0])
         self._vertex_body = self.model.flex_vertbodyid[first : first + count].copy()
@@ -268,6 +270,11 @@ class FlexWorld(World[Folds, ClothAction]):
     def render(self) -> np.ndarray:
         return self.camera.render(self.data)
 
+    def frame(self) -> np.ndarray:
+        if self.frame_camera is None:
+            return self.render()
+        return self.frame_camera.render(self.data)
+
     def read_state(self) -> Folds:
         if not np.isfinite(self.data.flexvert_xpos).all():
             raise WorldError("the cloth's vertices are not finite: the simulation diverged")
@@ -313,6 +320,8 @@ class FlexWorld(World[Folds, ClothAction]):
 
     def close(self) -> None:
         self.camera.close()
+        if self.frame_camera is not None:
+            self.frame_camera.close()
 
 
 def min_jerk(t: float) -> float:

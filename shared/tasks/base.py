@@ -7,6 +7,7 @@ service owns the implementations. A second task (cloth folding) plugs in by impl
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Sequence
@@ -16,6 +17,7 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 
 from shared.tasks.spec import TaskSpec
+from shared.workcell import Workcell, load_workcell
 
 State = TypeVar("State")
 Action = TypeVar("Action")
@@ -118,6 +120,23 @@ class Task(ABC, Generic[State, Action]):
     def neighbours(self, state: State) -> list[tuple[Action, State]]:
         return [(a, self._apply_legal(state, a)) for a in self.legal_actions(state)]
 
+    @cached_property
+    def workcell(self) -> Workcell | None:
+        """The markers on this task's table (None: a camera that never moves, nothing to
+        register)."""
+        return load_workcell(self.name)
+
+    def markers_info(self) -> dict[str, Any]:
+        """The workcell's part of `info()`: the markers, or null (registration off)."""
+        return {"markers": None if self.workcell is None else self.workcell.to_json()}
+
+    def with_workcell(self, workcell: Workcell | None) -> Task[State, Action]:
+        """This task on a table with other markers (None: none): a world of it renders
+        them, which is how a workcell is designed and measured."""
+        other = copy.copy(self)
+        other.__dict__["workcell"] = workcell  # tasks are frozen; the property is cached here
+        return other
+
     def hidden(self, state: State) -> frozenset[str]:
         """Parts of a state that its images cannot show (none for most tasks): evaluations
         report plans between states that show everything apart from the rest."""
@@ -185,7 +204,13 @@ class World(ABC, Generic[State, Action]):
 
     @abstractmethod
     def render(self) -> np.ndarray:
-        """The current scene as uint8 (H, W, 3)."""
+        """The current scene in the canonical view, as uint8 (image_size, image_size, 3)."""
+
+    def frame(self) -> np.ndarray:
+        """What the cell's camera sees: the canonical view's surroundings with the table's
+        markers (`shared.workcell`), at the frame's own size; a world without markers has
+        nothing more to show than its render."""
+        return self.render()
 
     @abstractmethod
     def read_state(self) -> State:

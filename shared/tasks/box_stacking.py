@@ -54,6 +54,7 @@ class BoxStacking(Task[Stacks, Move]):
         return {
             "task": self.name,
             "boxes": list(c.boxes),
+            **self.markers_info(),
             "columns": c.columns,
             "levels": c.levels,
             "num_states": len(self.all_states()),

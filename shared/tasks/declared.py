@@ -251,6 +251,7 @@ class DataTask(Task[None, Action]):
         return {
             "task": self.name,
             "declared": True,
+            **self.markers_info(),
             "capabilities": {"states": False, "rules": False, "world": False},
             "action_fields": list(self.fields),
             "action_format": self._format(),

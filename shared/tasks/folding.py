@@ -139,6 +139,7 @@ class FoldingTask(Task[Folds, ClothAction]):
         return {
             "task": self.name,
             "folds": list(self.folds),
+            **self.markers_info(),
             "locked_by": {fold: list(held) for fold, held in self.locks().items()},
             "num_states": len(self.all_states()),
             "num_transitions": sum(len(self.legal_actions(s)) for s in self.all_states()),

@@ -15,6 +15,7 @@ from services.sim.box_stacking.scene import (
     grip_weld,
 )
 from services.sim.rendering import OffscreenCamera, mujoco
+from services.sim.workcell import FrameCamera, with_markers
 from shared.tasks.base import World, WorldError
 from shared.tasks.box_stacking import BoxStacking, Move, Stacks
 
@@ -39,9 +40,11 @@ class BoxStackingWorld(World[Stacks, Move]):
         self.geometry = geometry or SceneGeometry()
         cfg = self.task.config
         mjcf = build_mjcf(cfg, self.geometry, image_size, box_looks)
+        mjcf = with_markers(mjcf, self.task.workcell)
         self.model = mujoco.MjModel.from_xml_string(mjcf)
         self.data = mujoco.MjData(self.model)
         self.camera = OffscreenCamera(self.model, "front", image_size)
+        self.frame_camera = FrameCamera(self.model, "front") if self.task.workcell else None
         self._column_x = np.array(
             [self.geometry.column_x(c, cfg.columns) for c in range(cfg.columns)]
         )
@@ -86,6 +89,11 @@ class BoxStackingWorld(World[Stacks, Move]):
     # ----- looking -----
     def render(self) -> np.ndarray:
         return self.camera.render(self.data)
+
+    def frame(self) -> np.ndarray:
+        if self.frame_camera is None:
+            return self.render()
+        return self.frame_camera.render(self.data)
 
     def read_state(self) -> Stacks:
         g, cfg = self.geometry, self.task.config
@@ -163,3 +171,5 @@ class BoxStackingWorld(World[Stacks, Move]):
 
     def close(self) -> None:
         self.camera.close()
+        if self.frame_camera is not None:
+            self.frame_camera.close()

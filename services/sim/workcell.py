@@ -1,0 +1,228 @@
+"""The workcell in MuJoCo: marker geoms on the table and the camera frame that sees them.
+
+The canonical view (each scene's named camera, the frame of the actions) stays what it always
+was; the cell's camera sees more of the table round it, where the markers lie, so that nothing
+the robot moves ever covers them. `FrameCamera` renders that wider frame from the same camera
+pose: the same focal length, `FRAME_SCALE` times the field of view, so that at the nominal pose
+the canonical view is its middle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.sim.rendering import OffscreenCamera, mujoco
+from shared.tasks.base import World
+from shared.workcell import Marker, Workcell, marker_cells
+
+FRAME_SCALE = 1.8  # the frame's field of view over the canonical one (tangent of the half-angle)
+FRAME_SIZE = 320  # pixels: 0.69 frame pixels per canonical pixel at 256
+WHITE = "0.93 0.93 0.93 1"
+BLACK = "0.03 0.03 0.03 1"
+BASE_M = 0.0006  # the printed sheet's thickness on the table
+
+
+def marker_geoms(workcell: Workcell | None) -> str:
+    """MJCF geoms of every marker (a white sheet with a quiet margin of one cell, black cells
+    on it), static and without contacts: they change no physics."""
+    if workcell is None:
+        return ""
+    parts = []
+    for marker in workcell.markers:
+        cells = marker_cells(marker.id)
+        n = cells.shape[0]
+        side = marker.side_mm / 1000
+        cell = side / n
+        cx, cy = (v / 1000 for v in marker.centre_mm)
+        base = side / 2 + cell
+        parts.append(
+            f'<geom name="marker_{marker.id}" type="box" pos="{cx:.5f} {cy:.5f} {BASE_M / 2}" '
+            f'size="{base:.5f} {base:.5f} {BASE_M / 2}" rgba="{WHITE}" contype="0" '
+            'conaffinity="0" group="2"/>'
+        )
+        for r in range(n):
+            for c in range(n):
+                if cells[r, c]:
+                    continue
+                x = cx - side / 2 + (c + 0.5) * cell
+                y = cy + side / 2 - (r + 0.5) * cell  # row 0 is the marker's top (+y)
+                parts.append(
+                    f'<geom type="box" pos="{x:.5f} {y:.5f} {BASE_M + 0.0001}" '
+                    f'size="{cell / 2:.5f} {cell / 2:.5f} 0.0001" rgba="{BLACK}" contype="0" '
+                    'conaffinity="0" group="2"/>'
+                )
+    return "".join(parts)
+
+
+def with_markers(xml: str, workcell: Workcell | None, frame_size: int = FRAME_SIZE) -> str:
+    """A scene's MJCF with the markers on its table and room to render the frame."""
+    if workcell is None:
+        return xml
+    xml = xml.replace("</worldbody>", marker_geoms(workcell) + "</worldbody>", 1)
+    marker = 'offwidth="'
+    start = xml.index(marker)
+    width = int(xml[start + len(marker) : xml.index('"', start + len(marker))])
+    size = max(width, frame_size)
+    return xml.replace(
+        f'offwidth="{width}" offheight="{width}"', f'offwidth="{size}" offheight="{size}"', 1
+    )
+
+
+class FrameCamera(OffscreenCamera):
+    """The cell's camera: the named camera's pose, `scale` times its field of view."""
+
+    def __init__(
+        self, model: mujoco.MjModel, camera: str, size: int = FRAME_SIZE, scale: float = FRAME_SCALE
+    ) -> None:
+        super().__init__(model, camera, size)
+        self.model = model
+        self._id = model.camera(camera).id
+        half = math.radians(float(model.cam_fovy[self._id])) / 2
+        self.fovy = math.degrees(2 * math.atan(scale * math.tan(half)))
+
+    def render(self, data: mujoco.MjData) -> np.ndarray:
+        canonical = float(self.model.cam_fovy[self._id])
+        self.model.cam_fovy[self._id] = self.fovy
+        try:
+            return super().render(data)
+        finally:
+            self.model.cam_fovy[self._id] = canonical
+
+
+@dataclass(frozen=True)
+class Pinhole:
+    """A MuJoCo camera as a pinhole of the canonical frame: project and back-project."""
+
+    position: np.ndarray  # (3,) world
+    axes: np.ndarray  # (3, 3) rows: x right, y up, z backwards (MuJoCo's camera frame)
+    focal: float  # pixels of the canonical frame
+    frame: int
+
+    @classmethod
+    def of(
+        cls, model: mujoco.MjModel, data: mujoco.MjData, camera: str, frame: int = 256
+    ) -> Pinhole:
+        mujoco.mj_forward(model, data)
+        cid = model.camera(camera).id
+        fovy = math.radians(float(model.cam_fovy[cid]))
+        return cls(
+            position=data.cam_xpos[cid].copy(),
+            axes=data.cam_xmat[cid].reshape(3, 3).T.copy(),
+            focal=frame / 2 / math.tan(fovy / 2),
+            frame=frame,
+        )
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) world points -> (N, 2) (x, y) canonical pixels (pixel 0 spans 0..1)."""
+        local = (np.atleast_2d(points) - self.position) @ self.axes.T
+        depth = -local[:, 2]
+        half = self.frame / 2
+        return np.stack(
+            [half + self.focal * local[:, 0] / depth, half - self.focal * local[:, 1] / depth],
+            axis=1,
+        )
+
+    def to_frame(
+        self, points: np.ndarray, size: int = FRAME_SIZE, scale: float = FRAME_SCALE
+    ) -> np.ndarray:
+        """(N, 3) world points -> (N, 2) OpenCV pixels of the cell's frame seen from here."""
+        ratio = size / (self.frame * scale)
+        return size / 2 + (self.project(points) - self.frame / 2) * ratio - 0.5
+
+    def on_table(self, pixel: tuple[float, float]) -> tuple[np.ndarray, float]:
+        """The table point (z = 0) seen at canonical `pixel`, and its depth along the axis."""
+        half = self.frame / 2
+        x, y = (pixel[0] - half) / self.focal, -(pixel[1] - half) / self.focal
+        ray = self.axes.T @ np.array([x, y, -1.0])
+        t = -self.position[2] / ray[2]
+        return self.position + t * ray, float(t)
+
+
+def design(
+    pinhole: Pinhole, places: list[tuple[int, tuple[float, float], float]]
+) -> tuple[Marker, ...]:
+    """Markers at canonical-frame `places` (id, centre pixel, width in canonical pixels there):
+    each a square on the table, sized to look that wide, rounded to the millimetre."""
+    markers = []
+    for ident, pixel, width in places:
+        centre, depth = pinhole.on_table(pixel)
+        side_mm = round(1000 * width * depth / pinhole.focal)
+        cx, cy = (round(1000 * float(v)) for v in centre[:2])
+        markers.append(table_marker(pinhole, ident, (cx, cy), side_mm))
+    return tuple(markers)
+
+
+def table_marker(
+    pinhole: Pinhole, ident: int, centre_mm: tuple[float, float], side_mm: float
+) -> Marker:
+    """A marker lying on the table, its corners seen by the canonical camera."""
+    cx, cy, h = centre_mm[0] / 1000, centre_mm[1] / 1000, side_mm / 2000
+    z = BASE_M + 0.0002  # the printed face
+    corners = np.array(
+        [[cx - h, cy + h, z], [cx + h, cy + h, z], [cx + h, cy - h, z], [cx - h, cy - h, z]]
+    )
+    pixels = pinhole.project(corners) - 0.5  # OpenCV's pixels: pixel centres at integers
+    return Marker(
+        id=ident,
+        centre_mm=(float(centre_mm[0]), float(centre_mm[1])),
+        side_mm=float(side_mm),
+        corners=tuple((float(x), float(y)) for x, y in pixels),
+    )
+
+
+# Where each task's markers go, in canonical pixels (id, centre, width there): round the view,
+# clear of its edge by their white margin, inside the frame at `shifted` camera draws. The
+# box camera looks at the table obliquely, so its markers lie low, where the table is near,
+# and the near ones below the view, clear of the frame's edge where perspective widens them;
+# the folding cameras look straight down and take the four corners.
+_CORNERS = [(0, (-40.0, -40.0), 44.0), (1, (296.0, -40.0), 44.0),
+            (2, (296.0, 296.0), 44.0), (3, (-40.0, 296.0), 44.0)]  # fmt: skip
+MIN_MARKERS = {"box_stacking": 4}  # with three, the far edge of the view is 13-17 px off
+PLACES: dict[str, list[tuple[int, tuple[float, float], float]]] = {
+    "box_stacking": [
+        (0, (-40.0, 190.0), 44.0),
+        (1, (296.0, 190.0), 44.0),
+        (2, (208.0, 302.0), 44.0),
+        (3, (48.0, 302.0), 44.0),
+    ],
+    "cloth_folding": _CORNERS,
+    "tshirt_folding": _CORNERS,
+}
+
+
+def layout(world: World) -> Workcell:
+    """The task's workcell designed from its world's canonical camera, with the levels its
+    markers' cells take in a clean frame (that frame rendered with the markers in place)."""
+    from shared.registration import Registration
+
+    name = world.task.name
+    camera = world.camera.camera
+    markers = design(Pinhole.of(world.model, world.data, camera), PLACES[name])
+    drafted = Workcell(markers=markers)
+    scene = type(world)(world.task.with_workcell(drafted), image_size=world.image_size)
+    try:
+        scene.reset(scene.task.all_states()[0], np.random.default_rng(0))
+        black, white = Registration(drafted, world.image_size).measure_levels(scene.frame())
+    finally:
+        scene.close()
+    return Workcell(
+        markers=markers,
+        min_markers=MIN_MARKERS.get(name, 3),
+        black=tuple(round(float(v), 2) for v in black),  # type: ignore[arg-type]
+        white=tuple(round(float(v), 2) for v in white),  # type: ignore[arg-type]
+    )
+
+
+def true_homography(moved: Pinhole, nominal: Pinhole) -> np.ndarray:
+    """Frame pixels of a camera at `moved` -> canonical pixels of `nominal`, exact for points
+    on the table: what a registration of that frame should find."""
+    import cv2
+
+    grid = np.stack(np.meshgrid(np.linspace(-0.5, 0.5, 11), np.linspace(-0.5, 0.5, 11)), -1)
+    points = np.column_stack([grid.reshape(-1, 2), np.zeros(121)])
+    near = points[(nominal.position - points) @ nominal.axes[2] > 0.05]  # in front of it
+    homography, _ = cv2.findHomography(moved.to_frame(near), nominal.project(near) - 0.5, 0)
+    return homography

@@ -1,0 +1,269 @@
+"""Registration: a camera frame brought to the task's canonical table view, before any model.
+
+One step every image passes on its way in (data generation, serving, the closed loop), as
+calibrated folding cells re-project every capture to one table view: find the workcell's
+markers on the full-resolution frame (OpenCV's ArUco, sub-pixel corners), fit the homography
+from the frame to the canonical frame (RANSAC), check that it is plausible, warp, map the
+markers' measured black and white onto the workcell's levels (per channel, a gain and an
+offset), and resize to the model's size. What cannot be registered raises RegistrationError
+with a reason that says which markers were missing or what was implausible.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from shared.workcell import Workcell, marker_cells
+
+
+class RegistrationError(ValueError):
+    """A frame that cannot be brought to the table frame; the message says why."""
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """What a plausible homography looks like; the defaults are set from frames at `shifted`
+    (every camera range doubled), with room (benchmarks/bench_registration.py)."""
+
+    max_error_px: float = 1.5  # RMS reprojection error of the corners, canonical pixels
+    max_offset_px: float = 60.0  # how far the view's corners may lie from where they should
+    min_contrast: float = 40.0  # white minus black of the markers' cells, levels of 255
+
+
+@dataclass(frozen=True)
+class Registered:
+    """A registered image and how it was registered."""
+
+    image: np.ndarray  # uint8 (size, size, 3): the canonical view at the model's size
+    homography: np.ndarray  # (3, 3) frame pixels -> canonical pixels
+    error_px: float  # RMS reprojection error of the markers' corners, canonical pixels
+    offset_px: float  # the farthest the view's corners lie from the nominal pose's
+    found: tuple[int, ...]  # the ids of the markers used
+    gain: np.ndarray = field(default_factory=lambda: np.ones(3))
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+class Registration:
+    """Frames of one workcell -> canonical views at `size` pixels.
+
+    `photometric` False skips the colour step (for measuring what it does). `workcell` None
+    is a camera that never moves: frames must already be the canonical view, and are only
+    resized.
+    """
+
+    def __init__(
+        self,
+        workcell: Workcell | None,
+        size: int,
+        photometric: bool = True,
+        bounds: Bounds | None = None,
+    ) -> None:
+        self.workcell = workcell
+        self.size = size
+        self.photometric = photometric
+        self.bounds = bounds or Bounds()
+        self._local = threading.local()  # OpenCV detectors are not shared between threads
+        if workcell is not None:
+            self._corners = {m.id: np.asarray(m.corners, np.float64) for m in workcell.markers}
+            self._cells = {m.id: _cell_centres(m.id, self._corners[m.id]) for m in workcell.markers}
+            self._black = np.asarray(workcell.black, np.float64)
+            self._white = np.asarray(workcell.white, np.float64)
+
+    @property
+    def enabled(self) -> bool:
+        return self.workcell is not None
+
+    def _detector(self) -> cv2.aruco.ArucoDetector:
+        detector = getattr(self._local, "detector", None)
+        if detector is None:
+            assert self.workcell is not None
+            dictionary = cv2.aruco.getPredefinedDictionary(
+                getattr(cv2.aruco, self.workcell.dictionary)
+            )
+            parameters = cv2.aruco.DetectorParameters()
+            parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+            # measured on `camera` and `shifted` frames (benchmarks/bench_registration.py):
+            # markers near the frame's edge and foreshortened ones are found more often
+            parameters.minDistanceToBorder = 1
+            parameters.adaptiveThreshWinSizeStep = 4
+            parameters.polygonalApproxAccuracyRate = 0.05
+            parameters.perspectiveRemovePixelPerCell = 8
+            detector = cv2.aruco.ArucoDetector(dictionary, parameters)
+            self._local.detector = detector
+        return detector
+
+    def detect(self, frame: np.ndarray) -> dict[int, np.ndarray]:
+        """The workcell's markers found in `frame`: id -> (4, 2) frame corners."""
+        gray = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+        corners, ids, _ = self._detector().detectMarkers(gray)
+        found: dict[int, np.ndarray] = {}
+        if ids is None:
+            return found
+        for ident, quad in zip(ids.reshape(-1).tolist(), corners, strict=True):
+            if ident in self._corners and ident not in found:
+                found[ident] = quad.reshape(4, 2).astype(np.float64)
+        return found
+
+    def _found(self, frame: np.ndarray) -> dict[int, np.ndarray]:
+        """`detect`, refusing a frame that shows too few of the markers."""
+        assert self.workcell is not None
+        wc, found = self.workcell, self.detect(frame)
+        if len(found) < wc.min_markers:
+            missing = [i for i in wc.ids if i not in found]
+            raise RegistrationError(
+                f"the table markers were not found: {len(found)} of {len(wc.ids)} seen "
+                f"(missing ids {missing}; {wc.dictionary}), at least {wc.min_markers} needed"
+            )
+        return found
+
+    def _fit(self, found: dict[int, np.ndarray]) -> tuple[np.ndarray, float]:
+        """The homography from the found corners to the canonical ones (RANSAC), and the
+        RMS reprojection error of the corners through it."""
+        ids = sorted(found)
+        source = np.concatenate([found[i] for i in ids])
+        target = np.concatenate([self._corners[i] for i in ids])
+        homography, _ = cv2.findHomography(source, target, cv2.RANSAC, 3.0)
+        if homography is None:
+            raise RegistrationError("the table markers give no homography (degenerate corners)")
+        return homography, _rms(_apply(homography, source) - target)
+
+    def register(self, frame: np.ndarray) -> Registered:
+        """`frame` (uint8 (H, W, 3), any size) as the canonical view at the model's size."""
+        frame = np.asarray(frame)
+        if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
+            raise RegistrationError(f"expected a uint8 RGB image, got {frame.dtype} {frame.shape}")
+        if self.workcell is None:
+            return Registered(_resize(frame, self.size), np.eye(3), 0.0, 0.0, ())
+        b, wc = self.bounds, self.workcell
+        found = self._found(frame)
+        ids = sorted(found)
+        homography, error = self._fit(found)
+        offset = self._offset(homography, frame.shape[1], frame.shape[0])
+        if not error <= b.max_error_px or not offset <= b.max_offset_px:
+            raise RegistrationError(
+                f"the table markers give an implausible homography (ids {ids}): corner error "
+                f"{error:.2f} px (bound {b.max_error_px}), view moved {offset:.1f} px "
+                f"(bound {b.max_offset_px})"
+            )
+        canonical = cv2.warpPerspective(
+            frame,
+            homography,
+            (wc.frame, wc.frame),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        gain, shift = np.ones(3), np.zeros(3)
+        if self.photometric:
+            gain, shift = self._levels(frame, homography, ids)
+            corrected = canonical.astype(np.float32) * gain.astype(np.float32) + shift
+            canonical = np.clip(np.rint(corrected), 0, 255).astype(np.uint8)
+        return Registered(
+            _resize(canonical, self.size), homography, error, offset, tuple(ids), gain, shift
+        )
+
+    def _offset(self, homography: np.ndarray, width: int, height: int) -> float:
+        """How far (canonical pixels) the frame's view of the canonical square lies from a
+        camera at the nominal pose, which sees the canonical view centred and at scale."""
+        n = self.workcell.frame if self.workcell else 0
+        square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64) - 0.5
+        seen = _apply(np.linalg.inv(homography), square)  # where the frame shows them
+        # the nominal pose: the frame's centre is the canonical centre, at the frame's scale
+        centre = np.array([(width - 1) / 2, (height - 1) / 2])
+        scale = _scale(homography, centre)
+        nominal = centre + (square - (n - 1) / 2) / scale
+        return float(np.max(np.linalg.norm(seen - nominal, axis=1)) * scale)
+
+    def _cell_levels(
+        self, frame: np.ndarray, homography: np.ndarray, ids: list[int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The median black and white (per channel) of the markers' cells in `frame`."""
+        inverse = np.linalg.inv(homography)
+        black, white = [], []
+        for ident in ids:
+            centres, is_white = self._cells[ident]
+            values = _sample(frame, _apply(inverse, centres))
+            black.append(values[~is_white])
+            white.append(values[is_white])
+        return np.median(np.concatenate(black), axis=0), np.median(np.concatenate(white), axis=0)
+
+    def _levels(
+        self, frame: np.ndarray, homography: np.ndarray, ids: list[int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per-channel gain and offset that map the markers' cells onto the workcell's."""
+        dark, light = self._cell_levels(frame, homography, ids)
+        contrast = light - dark
+        if float(contrast.min()) < self.bounds.min_contrast:
+            raise RegistrationError(
+                f"the table markers are too faint to read the light: white - black "
+                f"{contrast.min():.0f} levels (at least {self.bounds.min_contrast:.0f})"
+            )
+        gain = (self._white - self._black) / contrast
+        return gain, self._black - gain * dark
+
+    def measure_levels(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The markers' black and white in `frame` (per channel): a workcell's levels are
+        measured so, on a frame at the nominal pose and light."""
+        found = self._found(frame)
+        return self._cell_levels(frame, self._fit(found)[0], sorted(found))
+
+
+def _cell_centres(marker_id: int, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Canonical-frame points inside every cell of a marker (a 3 x 3 grid over the middle half
+    of each cell, away from the edges blurred by resampling), and whether each is white."""
+    cells = marker_cells(marker_id)
+    n = cells.shape[0]
+    unit = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64)
+    to_canonical = cv2.getPerspectiveTransform(unit.astype(np.float32), corners.astype(np.float32))
+    offsets = np.array([0.25, 0.5, 0.75])
+    points, white = [], []
+    for r in range(n):
+        for c in range(n):
+            for dy in offsets:
+                for dx in offsets:
+                    points.append((c + dx, r + dy))
+                    white.append(bool(cells[r, c]))
+    return _apply(to_canonical, np.array(points)), np.array(white)
+
+
+def _apply(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2) points through a homography."""
+    lifted = np.column_stack([points, np.ones(len(points))]) @ homography.T
+    return lifted[:, :2] / lifted[:, 2:3]
+
+
+def _scale(homography: np.ndarray, at: np.ndarray) -> float:
+    """Canonical pixels per frame pixel near `at` (the square root of the local area ratio)."""
+    square = at + np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    mapped = _apply(homography, square)
+    x, y = mapped[:, 0], mapped[:, 1]
+    area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+    return float(np.sqrt(area))
+
+
+def _rms(residuals: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
+
+
+def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) bilinear samples of `image` at (x, y) `points`; points outside are clamped."""
+    h, w = image.shape[:2]
+    x = np.clip(points[:, 0], 0, w - 1.001)
+    y = np.clip(points[:, 1], 0, h - 1.001)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    img = image.astype(np.float64)
+    top = img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx
+    bottom = img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _resize(image: np.ndarray, size: int) -> np.ndarray:
+    """To `size` x `size`: area averaging down (as a renderer's multisampling), linear up."""
+    if image.shape[:2] == (size, size):
+        return np.ascontiguousarray(image)
+    flags = cv2.INTER_AREA if image.shape[0] > size else cv2.INTER_LINEAR
+    return cv2.resize(image, (size, size), interpolation=flags)

@@ -1,0 +1,230 @@
+"""The workcell: fiducial markers at fixed places on the table, and where the canonical view
+sees them.
+
+A camera that moves (a bumped tripod, a second cell) sees the table from another pose; the
+markers tell where the table is in every frame, so that `shared.registration` can bring the
+frame back to the one canonical view the models were trained on, as calibrated folding cells
+do. A `Workcell` is pure data (no MuJoCo, no OpenCV at import): tasks report it, datasets and
+imported `task.json` carry it, and `lsr workcell markers` prints it at true size.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+DICTIONARY = "DICT_4X4_50"  # 4 x 4 bits: the largest cells for a given marker size
+BORDER_CELLS = 1  # a marker is (bits + 2) cells a side: one black cell of border all round
+
+
+LAYOUTS = Path(__file__).parent / "tasks" / "workcells"  # one JSON per built-in task
+
+
+class WorkcellError(ValueError):
+    """A workcell description that cannot be used; the message names the field."""
+
+
+@dataclass(frozen=True)
+class Marker:
+    """One square marker: its id, where it lies on the table and where the canonical view
+    sees its corners."""
+
+    id: int
+    centre_mm: tuple[float, float]  # on the table: x right, y away from the camera
+    side_mm: float  # the whole marker, border included
+    # (4, 2) (x, y) pixels of the canonical frame, in OpenCV's order: the printed marker's
+    # top-left, top-right, bottom-right, bottom-left (top = towards +y on the table).
+    corners: tuple[tuple[float, float], ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "centre_mm": [round(v, 3) for v in self.centre_mm],
+            "side_mm": round(self.side_mm, 3),
+            "corners": [[round(x, 3), round(y, 3)] for x, y in self.corners],
+        }
+
+
+@dataclass(frozen=True)
+class Workcell:
+    """The markers of one task's table and the levels their cells take in the canonical view.
+
+    `corners` may lie outside the frame: the markers sit round the view the models see, on
+    the table the camera sees beyond it, so that nothing on the table ever covers them.
+    """
+
+    markers: tuple[Marker, ...]
+    # markers a frame must show to be registered: fewer extrapolate the view too far where
+    # the markers lie to one side of it (the box camera's lie low)
+    min_markers: int = 3
+    frame: int = 256  # the canonical frame's side in pixels (the actions' frame)
+    dictionary: str = DICTIONARY
+    # Per channel, 0..255: what the markers' black and white cells look like in the canonical
+    # view; registration maps each frame's measured levels onto these.
+    black: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    white: tuple[float, float, float] = (255.0, 255.0, 255.0)
+
+    @property
+    def ids(self) -> list[int]:
+        return [m.id for m in self.markers]
+
+    def corners(self) -> np.ndarray:
+        """(N, 4, 2) float64 canonical-frame corners, in the order of `markers`."""
+        return np.array([m.corners for m in self.markers], dtype=np.float64)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "dictionary": self.dictionary,
+            "frame": self.frame,
+            "ids": self.ids,
+            "min_markers": self.min_markers,
+            "markers": [m.to_json() for m in self.markers],
+            "black": [round(v, 2) for v in self.black],
+            "white": [round(v, 2) for v in self.white],
+        }
+
+    @classmethod
+    def from_json(cls, obj: Any, where: str = "markers") -> Workcell | None:
+        """A workcell from its JSON; None for `null` (a camera that never moves)."""
+        if obj is None:
+            return None
+        if not isinstance(obj, dict):
+            raise WorkcellError(f"{where}: expected an object or null")
+        dictionary = obj.get("dictionary", DICTIONARY)
+        if dictionary != DICTIONARY:
+            raise WorkcellError(f"{where}.dictionary: only {DICTIONARY} is supported")
+        frame = _number(obj.get("frame", 256), f"{where}.frame")
+        items = obj.get("markers")
+        if not isinstance(items, list) or not items:
+            raise WorkcellError(f"{where}.markers: expected a non-empty list of markers")
+        markers = []
+        for i, item in enumerate(items):
+            at = f"{where}.markers[{i}]"
+            if not isinstance(item, dict):
+                raise WorkcellError(f"{at}: expected an object")
+            ident = item.get("id")
+            if isinstance(ident, bool) or not isinstance(ident, int) or not 0 <= ident < 50:
+                raise WorkcellError(f"{at}.id: expected an integer 0..49 ({DICTIONARY})")
+            corners = np.asarray(item.get("corners"), dtype=object)
+            if corners.shape != (4, 2):
+                raise WorkcellError(f"{at}.corners: expected four [x, y] pairs")
+            markers.append(
+                Marker(
+                    id=ident,
+                    centre_mm=_pair(item.get("centre_mm", [0.0, 0.0]), f"{at}.centre_mm"),
+                    side_mm=_number(item.get("side_mm", 0.0), f"{at}.side_mm"),
+                    corners=tuple(_pair(c, f"{at}.corners") for c in corners.tolist()),
+                )
+            )
+        if len({m.id for m in markers}) != len(markers):
+            raise WorkcellError(f"{where}.markers: every id may appear once")
+        least = obj.get("min_markers", min(3, len(markers)))
+        if isinstance(least, bool) or not isinstance(least, int) or not 1 <= least <= len(markers):
+            raise WorkcellError(f"{where}.min_markers: an integer from 1 to {len(markers)}")
+        return cls(
+            markers=tuple(markers),
+            min_markers=least,
+            frame=int(frame),
+            black=_triple(obj.get("black", [0, 0, 0]), f"{where}.black"),
+            white=_triple(obj.get("white", [255, 255, 255]), f"{where}.white"),
+        )
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise WorkcellError(f"{where}: expected a finite number")
+    return float(value)
+
+
+def _pair(value: Any, where: str) -> tuple[float, float]:
+    if not isinstance(value, list | tuple) or len(value) != 2:
+        raise WorkcellError(f"{where}: expected [x, y]")
+    return _number(value[0], where), _number(value[1], where)
+
+
+def _triple(value: Any, where: str) -> tuple[float, float, float]:
+    if not isinstance(value, list | tuple) or len(value) != 3:
+        raise WorkcellError(f"{where}: expected [r, g, b]")
+    r, g, b = (_number(v, where) for v in value)
+    return r, g, b
+
+
+def load_workcell(task: str) -> Workcell | None:
+    """A built-in task's workcell, as `lsr workcell layout` wrote it; None when it has none."""
+    path = LAYOUTS / f"{task}.json"
+    if not path.is_file():
+        return None
+    return Workcell.from_json(json.loads(path.read_text()), where=f"{path.name}")
+
+
+@cache
+def marker_cells(marker_id: int) -> np.ndarray:
+    """(6, 6) bool, True where the printed marker is white, row 0 at its top."""
+    import cv2  # only what draws or detects markers needs OpenCV
+
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, DICTIONARY))
+    side = dictionary.markerSize + 2 * BORDER_CELLS
+    cells = cv2.aruco.generateImageMarker(dictionary, marker_id, side) > 127
+    cells.setflags(write=False)
+    return cells
+
+
+def markers_svg(workcell: Workcell, task: str) -> str:
+    """A printable sheet of the table at true size (millimetres): every marker at its place,
+    the quiet white margin it needs, and a cross at the table frame's origin."""
+    cells = {m.id: marker_cells(m.id) for m in workcell.markers}
+    margin = 20.0
+    xs = [m.centre_mm[0] for m in workcell.markers]
+    ys = [m.centre_mm[1] for m in workcell.markers]
+    half = max(m.side_mm for m in workcell.markers) / 2 + margin
+    left, right = min(xs) - half, max(xs) + half
+    bottom, top = min(ys) - half, max(ys) + half
+    width, height = right - left, top - bottom
+
+    def at(x: float, y: float) -> tuple[float, float]:  # table mm -> sheet mm (y down)
+        return x - left, top - y
+
+    parts = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width:.1f}mm" height="{height:.1f}mm" '
+        f'viewBox="0 0 {width:.3f} {height:.3f}">',
+        f"<title>LSR workcell markers: {task} ({workcell.dictionary})</title>",
+        f'<rect x="0" y="0" width="{width:.3f}" height="{height:.3f}" fill="white"/>',
+    ]
+    for marker in workcell.markers:
+        grid = cells[marker.id]
+        n = grid.shape[0]
+        cell = marker.side_mm / n
+        half_side = marker.side_mm / 2
+        x0, y0 = at(marker.centre_mm[0] - half_side, marker.centre_mm[1] + half_side)
+        parts.append(f'<g id="marker-{marker.id}">')
+        for r in range(n):
+            for c in range(n):
+                if not grid[r, c]:
+                    parts.append(
+                        f'<rect x="{x0 + c * cell:.3f}" y="{y0 + r * cell:.3f}" '
+                        f'width="{cell:.3f}" height="{cell:.3f}" fill="black"/>'
+                    )
+        label_x, label_y = x0, y0 + marker.side_mm + 4
+        parts.append(
+            f'<text x="{label_x:.2f}" y="{label_y:.2f}" font-size="3" font-family="sans-serif">'
+            f"id {marker.id}: centre ({marker.centre_mm[0]:.1f}, {marker.centre_mm[1]:.1f}) mm, "
+            f"side {marker.side_mm:.1f} mm</text></g>"
+        )
+    ox, oy = at(0.0, 0.0)
+    parts.append(
+        f'<path d="M {ox - 5:.2f} {oy:.2f} H {ox + 5:.2f} M {ox:.2f} {oy - 5:.2f} V {oy + 5:.2f}" '
+        'stroke="black" stroke-width="0.3" fill="none"/>'
+    )
+    parts.append(
+        f'<text x="{ox + 2:.2f}" y="{oy - 2:.2f}" font-size="3" font-family="sans-serif">'
+        "table origin (x right, y away from the camera)</text>"
+    )
+    parts.append("</svg>")
+    return "\n".join(parts) + "\n"
