@@ -26,8 +26,9 @@ class RegistrationError(ValueError):
 
 @dataclass(frozen=True)
 class Bounds:
-    """What a plausible homography looks like; the defaults are set from frames at `shifted`
-    (every camera range doubled), with room (benchmarks/bench_registration.py)."""
+    """What a plausible homography looks like. The defaults lie above what `camera` frames
+    gave (corner RMS up to 1.3 px, the view moved up to 16 px; benchmarks/bench_registration.py)
+    with room for `shifted`, which doubles every camera range."""
 
     max_error_px: float = 1.5  # RMS reprojection error of the corners, canonical pixels
     max_offset_px: float = 60.0  # how far the view's corners may lie from where they should
@@ -168,7 +169,8 @@ class Registration:
     def _offset(self, homography: np.ndarray, width: int, height: int) -> float:
         """How far (canonical pixels) the frame's view of the canonical square lies from a
         camera at the nominal pose, which sees the canonical view centred and at scale."""
-        n = self.workcell.frame if self.workcell else 0
+        assert self.workcell is not None
+        n = self.workcell.frame
         square = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64) - 0.5
         seen = _apply(np.linalg.inv(homography), square)  # where the frame shows them
         # the nominal pose: the frame's centre is the canonical centre, at the frame's scale

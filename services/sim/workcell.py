@@ -57,18 +57,11 @@ def marker_geoms(workcell: Workcell | None) -> str:
     return "".join(parts)
 
 
-def with_markers(xml: str, workcell: Workcell | None, frame_size: int = FRAME_SIZE) -> str:
-    """A scene's MJCF with the markers on its table and room to render the frame."""
+def with_markers(xml: str, workcell: Workcell | None) -> str:
+    """A scene's MJCF with the markers on its table."""
     if workcell is None:
         return xml
-    xml = xml.replace("</worldbody>", marker_geoms(workcell) + "</worldbody>", 1)
-    marker = 'offwidth="'
-    start = xml.index(marker)
-    width = int(xml[start + len(marker) : xml.index('"', start + len(marker))])
-    size = max(width, frame_size)
-    return xml.replace(
-        f'offwidth="{width}" offheight="{width}"', f'offwidth="{size}" offheight="{size}"', 1
-    )
+    return xml.replace("</worldbody>", marker_geoms(workcell) + "</worldbody>", 1)
 
 
 class FrameCamera(OffscreenCamera):
@@ -77,6 +70,9 @@ class FrameCamera(OffscreenCamera):
     def __init__(
         self, model: mujoco.MjModel, camera: str, size: int = FRAME_SIZE, scale: float = FRAME_SCALE
     ) -> None:
+        offscreen = model.vis.global_  # the frame may be larger than the scene's own renders
+        offscreen.offwidth = max(int(offscreen.offwidth), size)
+        offscreen.offheight = max(int(offscreen.offheight), size)
         super().__init__(model, camera, size)
         self.model = model
         self._id = model.camera(camera).id
