@@ -7,6 +7,7 @@ Like the ActionPlanner, it decodes each roadmap node once: the images are kept b
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
 from collections.abc import Sequence
@@ -83,17 +84,53 @@ class PlanningClient:
         seed: int = 0,
         deadline: float | None = None,
         appearance: str | None = None,
+        frame: bool = False,
     ) -> np.ndarray:
-        """Images of `states`; `appearance` None: the served model's training appearance."""
+        """Images of `states`; `appearance` None: the served model's training appearance;
+        `frame`: the cell camera's whole frames (markers and all), not the table-frame view."""
         request = RenderRequest(
             task=self.task_name,
             states=[self.task.state_to_json(s) for s in states],
             seed=seed,
             appearance=appearance,
+            frame=frame,
         )
         rendering = self._call("sim", "render", request, RenderReply, deadline or self.deadline())
         reply: RenderReply = rendering.result()
         return reply.images.numpy()
+
+    def _encode(
+        self, images: list[np.ndarray], deadline: float
+    ) -> tuple[np.ndarray, WireArray | None, list[str | None], list[PendingCall]]:
+        """Latents, reconstruction errors and registration refusals of `images`: one encode
+        call per image size (a camera frame and a table-frame image may come together), all
+        in flight at once."""
+        groups: dict[tuple[int, ...], list[int]] = {}
+        for i, image in enumerate(images):
+            groups.setdefault(image.shape, []).append(i)
+        pending = [
+            self._call(
+                "encoder",
+                "encode",
+                EncodeRequest(
+                    task=self.task_name, images=WireArray.of(np.stack([images[i] for i in rows]))
+                ),
+                EncodeReply,
+                deadline,
+            )
+            for rows in groups.values()
+        ]
+        latents: list[Any] = [None] * len(images)
+        errors: list[Any] = [None] * len(images)
+        refused: list[str | None] = [None] * len(images)
+        for rows, encoding in zip(groups.values(), pending, strict=True):
+            reply: EncodeReply = encoding.result()
+            for k, i in enumerate(rows):
+                latents[i] = reply.latents.numpy()[k]
+                errors[i] = None if reply.errors is None else reply.errors.numpy()[k]
+                refused[i] = None if reply.refused is None else reply.refused[k]
+        known = None if any(e is None for e in errors) else WireArray.of(np.stack(errors))
+        return np.stack(latents), known, refused, pending
 
     def plan_with_reason(
         self,
@@ -109,25 +146,29 @@ class PlanningClient:
         hang anywhere costs the caller that budget once, not once per call after slow ones.
         `expect_node`, `avoid_steps`: what a closed loop learned so far (PathsRequest)."""
         deadline = deadline or self.deadline()
-        images_in = EncodeRequest(task=self.task_name, images=WireArray.of(np.stack([start, goal])))
-        encoding = self._call("encoder", "encode", images_in, EncodeReply, deadline)
-        encoded: EncodeReply = encoding.result()
-        z_start, z_goal = encoded.latents.numpy()
+        (z_start, z_goal), errors, refused, calls = self._encode([start, goal], deadline)
         search = PathsRequest(
             task=self.task_name,
             z_start=WireArray.of(z_start),
             z_goal=WireArray.of(z_goal),
             max_plans=max_plans,
-            errors=encoded.errors,
+            errors=errors,
             expect_node=expect_node,
             avoid_steps=list(avoid_steps),
         )
         searching = self._call("planner", "paths", search, PathsReply, deadline)
         found: PathsReply = searching.result()
-        calls = [encoding, searching]
+        calls.append(searching)
         match = None
         if found.match is not None:
             match = {end: Match.from_json(m) for end, m in found.match.items()}
+        for end, why in zip(("start", "goal"), refused, strict=True):
+            if why is not None:  # not registered: not known, whatever its latent's match
+                if match is not None:
+                    match[end] = dataclasses.replace(match[end], known=False)
+                return PlanOutcome(
+                    [], f"the {end} image is not known: {why}", timings(calls), match
+                )
         if not found.paths:
             return PlanOutcome([], found.reason, timings(calls), match)
         node_latents = found.node_latents.numpy()

@@ -44,7 +44,9 @@ class PngCache:
         return encoded
 
 
-def decode_image(data: bytes, size: int | None = None, at_least: int | None = None) -> np.ndarray:
+def decode_image(
+    data: bytes, size: int | None = None, at_least: int | None = None, max_side: int | None = None
+) -> np.ndarray:
     """PNG/JPEG bytes -> uint8 (H, W, 3).
 
     Refuses other sizes than `size` (checked before any pixel is decoded) and modes that do not
@@ -58,6 +60,10 @@ def decode_image(data: bytes, size: int | None = None, at_least: int | None = No
                 raise ImageError(f"image format {img.format} is not PNG or JPEG")
             if size is not None and img.size != (size, size):
                 raise ImageError(f"image is {img.size[0]}x{img.size[1]}, expected {size}x{size}")
+            if max_side is not None and not all(16 <= side <= max_side for side in img.size):
+                raise ImageError(
+                    f"image is {img.size[0]}x{img.size[1]}; expected 16 to {max_side} pixels a side"
+                )
             if at_least is not None and img.format == "JPEG" and img.mode in ("RGB", "L"):
                 w, h = img.size
                 scale = at_least / min(w, h)

@@ -75,12 +75,17 @@ class TaskMessage(Message):
 
 # encoder ------------------------------------------------------------------------------------
 class EncodeRequest(TaskMessage):
-    images: WireArray  # uint8 (N, H, W, 3)
+    # uint8 (N, H, W, 3): at the model's size, images in the table frame; at any other size,
+    # camera frames the encoder registers first (shared.registration.to_table_frame)
+    images: WireArray
 
 
 class EncodeReply(Message):
     latents: WireArray  # float32 (N, D): the encoder means
     errors: WireArray | None = None  # float32 (N, 2): reconstruction errors, whole and worst patch
+    # per image, why its frame could not be registered (None: it was, or needed not be);
+    # such an image is not known, whatever its latent says
+    refused: list[str | None] | None = None
 
 
 class DecodeRequest(TaskMessage):
@@ -149,6 +154,7 @@ class RenderRequest(TaskMessage):
     states: list[Any] = Field(min_length=1, max_length=64)  # the task's state JSON
     seed: int = Field(0, ge=0, lt=2**63)
     appearance: str | None = None  # a level of shared.appearance; None: the model's training one
+    frame: bool = False  # the cell camera's whole frame (markers round the view), not the view
 
 
 class RenderReply(Message):

@@ -19,9 +19,13 @@ import numpy as np
 
 from shared.workcell import Workcell, marker_cells
 
+NOT_FOUND = "the table markers were not found"
+
 
 class RegistrationError(ValueError):
-    """A frame that cannot be brought to the table frame; the message says why."""
+    """A frame that cannot be brought to the table frame; the message says why, and starts
+    with NOT_FOUND whatever the markers lacked (too few seen, an implausible homography, too
+    faint to read the light): the refusal contract names the markers so."""
 
 
 @dataclass(frozen=True)
@@ -98,15 +102,27 @@ class Registration:
         return detector
 
     def detect(self, frame: np.ndarray) -> dict[int, np.ndarray]:
-        """The workcell's markers found in `frame`: id -> (4, 2) frame corners."""
+        """The workcell's markers found in `frame`: id -> (4, 2) frame corners. Markers the
+        first pass misses are looked for again at twice the scale: small, blurred markers
+        far from the camera decode there (every box-stacking state at `camera` registers
+        with it; 5 of 288 did not without)."""
         gray = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
+        found = self._markers(gray, 1.0)
+        if len(found) < len(self._corners):
+            doubled = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR)
+            for ident, quad in self._markers(doubled, 2.0).items():
+                found.setdefault(ident, quad)
+        return found
+
+    def _markers(self, gray: np.ndarray, scale: float) -> dict[int, np.ndarray]:
         corners, ids, _ = self._detector().detectMarkers(gray)
         found: dict[int, np.ndarray] = {}
         if ids is None:
             return found
         for ident, quad in zip(ids.reshape(-1).tolist(), corners, strict=True):
             if ident in self._corners and ident not in found:
-                found[ident] = quad.reshape(4, 2).astype(np.float64)
+                # pixel centres at integers at both scales
+                found[ident] = (quad.reshape(4, 2).astype(np.float64) + 0.5) / scale - 0.5
         return found
 
     def _found(self, frame: np.ndarray) -> dict[int, np.ndarray]:
@@ -116,7 +132,7 @@ class Registration:
         if len(found) < wc.min_markers:
             missing = [i for i in wc.ids if i not in found]
             raise RegistrationError(
-                f"the table markers were not found: {len(found)} of {len(wc.ids)} seen "
+                f"{NOT_FOUND}: {len(found)} of {len(wc.ids)} seen "
                 f"(missing ids {missing}; {wc.dictionary}), at least {wc.min_markers} needed"
             )
         return found
@@ -129,7 +145,7 @@ class Registration:
         target = np.concatenate([self._corners[i] for i in ids])
         homography, _ = cv2.findHomography(source, target, cv2.RANSAC, 3.0)
         if homography is None:
-            raise RegistrationError("the table markers give no homography (degenerate corners)")
+            raise RegistrationError(f"{NOT_FOUND}: they give no homography (degenerate corners)")
         return homography, _rms(_apply(homography, source) - target)
 
     def register(self, frame: np.ndarray) -> Registered:
@@ -146,7 +162,7 @@ class Registration:
         offset = self._offset(homography, frame.shape[1], frame.shape[0])
         if not error <= b.max_error_px or not offset <= b.max_offset_px:
             raise RegistrationError(
-                f"the table markers give an implausible homography (ids {ids}): corner error "
+                f"{NOT_FOUND}: ids {ids} give an implausible homography: corner error "
                 f"{error:.2f} px (bound {b.max_error_px}), view moved {offset:.1f} px "
                 f"(bound {b.max_offset_px})"
             )
@@ -200,7 +216,7 @@ class Registration:
         contrast = light - dark
         if float(contrast.min()) < self.bounds.min_contrast:
             raise RegistrationError(
-                f"the table markers are too faint to read the light: white - black "
+                f"{NOT_FOUND}: they are too faint to read the light: white - black "
                 f"{contrast.min():.0f} levels (at least {self.bounds.min_contrast:.0f})"
             )
         gain = (self._white - self._black) / contrast
@@ -211,6 +227,30 @@ class Registration:
         measured so, on a frame at the nominal pose and light."""
         found = self._found(frame)
         return self._cell_levels(frame, self._fit(found)[0], sorted(found))
+
+
+def to_table_frame(
+    registration: Registration, images: np.ndarray | list[np.ndarray]
+) -> tuple[np.ndarray, list[str | None]]:
+    """What a model is given of each image, and why an image could not be registered (None
+    where it was): an image at the model's size is taken as already in the table frame (a
+    render, a registered image, a plan's own image); any other size is a camera frame and is
+    registered. A frame that cannot be registered is resized as it is, so that the model can
+    still say how far it lies from what it knows, and its reason is kept: it is not known."""
+    size = registration.size
+    out, reasons = [], []
+    for image in images:
+        reason = None
+        if image.shape[:2] == (size, size):
+            registered = np.ascontiguousarray(image)
+        else:
+            try:
+                registered = registration.register(image).image
+            except RegistrationError as exc:
+                registered, reason = _resize(image, size), str(exc)
+        out.append(registered)
+        reasons.append(reason)
+    return np.stack(out), reasons
 
 
 def _cell_centres(marker_id: int, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

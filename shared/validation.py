@@ -55,6 +55,28 @@ def check_images(
     return images.copy()  # writable, as torch wants it; the wire's buffer is read-only
 
 
+MAX_FRAME = 4096  # pixels a side of a camera frame
+
+
+def check_frames(field: str, array: WireArray, max_rows: int | None = None) -> np.ndarray:
+    """uint8 images (N, H, W, 3) of any size from 16 to MAX_FRAME a side, camera frames or
+    images already in the table frame; with max_rows=None a single (H, W, 3)."""
+    images = array.numpy()
+    ndim = 3 if max_rows is None else 4
+    if array.dtype != "|u1" or images.ndim != ndim or images.shape[-1] != 3:
+        expected = "(H, W, 3)" if max_rows is None else "(N, H, W, 3)"
+        raise FieldError(
+            field, f"expected uint8 {expected}, got {array.dtype} {list(images.shape)}"
+        )
+    if not all(16 <= side <= MAX_FRAME for side in images.shape[-3:-1]):
+        raise FieldError(
+            field, f"images are 16 to {MAX_FRAME} pixels a side, got {list(images.shape[-3:-1])}"
+        )
+    if max_rows is not None and not 1 <= len(images) <= max_rows:
+        raise FieldError(field, f"1 to {max_rows} images per request, got {len(images)}")
+    return images
+
+
 def check_task(requested: str, served: str) -> None:
     if requested != served:
         raise FieldError("task", f"this instance serves {served!r}, not {requested!r}")

@@ -23,14 +23,22 @@ def cmd_data_generate(args: argparse.Namespace) -> int:
         episode_length=args.episode_length,
         starts=args.starts,
         appearance=args.appearance,
+        look_pairs=args.look_pairs,
     )
     result = generate(cfg, args.out, overwrite=args.overwrite)
     counts = result["counts"]
     print(
         f"wrote {counts['tuples']} tuples ({counts['action_pairs']} action, "
-        f"{counts['no_action_pairs']} no-action) to {args.out} in {result['seconds']:.1f} s "
-        f"({result['images_per_second']:.0f} images/s)"
+        f"{counts['no_action_pairs']} no-action, {counts['look_pairs']} of them across looks) "
+        f"to {args.out} in {result['seconds']:.1f} s ({result['images_per_second']:.0f} images/s)"
     )
+    registration = result["registration"]
+    if registration is not None:
+        print(
+            f"registered {registration['frames']} frames to the table frame (corner error "
+            f"p50 {registration['error_px_p50']} px, max {registration['error_px_max']} px); "
+            f"{registration['refused']} frames without their markers were looked at again"
+        )
     return 0
 
 
@@ -100,6 +108,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=LEVELS,
         help="how the images look, recorded in the manifest; default: the task's (camera for "
         f"tshirt_folding, else clean) ({levels_help()})",
+    )
+    gen.add_argument(
+        "--look-pairs",
+        type=float,
+        default=0.0,
+        help="share of no-action pairs whose second image is the same state under a fresh "
+        "look (lights, table, camera); default 0",
     )
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")

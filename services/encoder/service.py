@@ -20,7 +20,9 @@ from shared.messages import (
     WireArray,
     unpack,
 )
-from shared.validation import check_images, check_latents, check_task
+from shared.registration import Registration, to_table_frame
+from shared.tasks import get_task
+from shared.validation import check_frames, check_latents, check_task
 
 MAX_BATCH = 256
 
@@ -28,19 +30,26 @@ MAX_BATCH = 256
 def setup(context: ServiceContext) -> dict[str, Operation]:
     vae, _ = load_vae(context.model.directory / "vae")
     size, dim, task = context.model.image_size, context.model.latent_dim, context.model.task
+    registration = Registration(get_task(task).workcell, size)  # every image, before the model
 
-    def parse_encode(payload: bytes) -> np.ndarray:
+    def parse_encode(payload: bytes) -> tuple[np.ndarray, list[str | None]]:
         request = unpack(payload, EncodeRequest)
         check_task(request.task, task)
-        return check_images("images", request.images, size, max_rows=MAX_BATCH)
+        return to_table_frame(registration, check_frames("images", request.images, MAX_BATCH))
 
-    def encode(batches: list[np.ndarray]) -> list[EncodeReply]:
-        images = np.concatenate(batches)
+    def encode(batches: list[tuple[np.ndarray, list[str | None]]]) -> list[EncodeReply]:
+        images = np.concatenate([registered for registered, _ in batches])
         latents, errors = look(vae, images)  # errors: for knowing the images
-        ends = np.cumsum([len(batch) for batch in batches])[:-1]
+        ends = np.cumsum([len(registered) for registered, _ in batches])[:-1]
         return [
-            EncodeReply(latents=WireArray.of(z), errors=WireArray.of(e.astype(np.float32)))
-            for z, e in zip(np.split(latents, ends), np.split(errors, ends), strict=True)
+            EncodeReply(
+                latents=WireArray.of(z),
+                errors=WireArray.of(e.astype(np.float32)),
+                refused=reasons if any(reasons) else None,
+            )
+            for z, e, (_, reasons) in zip(
+                np.split(latents, ends), np.split(errors, ends), batches, strict=True
+            )
         ]
 
     def decode(payload: bytes) -> DecodeReply:

@@ -46,7 +46,7 @@ from shared.settings import Settings
 from shared.tasks import declare_task, get_task, has_simulator
 from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
-from shared.validation import FieldError, parse_state
+from shared.validation import MAX_FRAME, FieldError, parse_state
 
 INFO_TTL_S = 10.0
 
@@ -58,7 +58,9 @@ class TaskNotServed(LookupError):
         super().__init__(f"task {task!r} is not served here; served tasks are {served}")
 
 
-def decode_b64_image(field: str, text: str, size: int) -> np.ndarray:
+def decode_b64_image(field: str, text: str, size: int | None = None) -> np.ndarray:
+    """A base64 PNG/JPEG: of `size` pixels a side, or (None) of any size up to MAX_FRAME, a
+    camera frame that the encoder registers to the table frame."""
     if text.startswith("data:"):
         text = text.partition(",")[2]
     try:
@@ -66,7 +68,7 @@ def decode_b64_image(field: str, text: str, size: int) -> np.ndarray:
     except (binascii.Error, ValueError):
         raise FieldError(field, "not valid base64") from None
     try:
-        return decode_image(data, size)
+        return decode_image(data, size, max_side=MAX_FRAME)
     except ImageError as exc:
         raise FieldError(field, str(exc)) from None
 
@@ -155,13 +157,14 @@ class Gateway:
     def _images(
         self, task: str, endpoints: dict[str, Endpoint], deadline: float
     ) -> dict[str, np.ndarray]:
-        """Decode the image endpoints, render the state endpoints (in one sim call)."""
+        """Decode the image endpoints (any size: camera frames are registered by the encoder,
+        images at the model's size are taken as in the table frame already), render the state
+        endpoints (in one sim call)."""
         logic = get_task(task)
         images, states = {}, {}
         for name, endpoint in endpoints.items():
-            if endpoint.image is not None:  # the size is asked of the encoder only then
-                size = self.image_size(task, deadline)
-                images[name] = decode_b64_image(f"{name}.image", endpoint.image, size)
+            if endpoint.image is not None:
+                images[name] = decode_b64_image(f"{name}.image", endpoint.image)
             else:
                 states[name] = parse_state(logic, f"{name}.state", endpoint.state)
         if states:
@@ -218,7 +221,7 @@ class Gateway:
         state = parse_state(task, "state", request.state)
         deadline = deadline or time.monotonic() + self.settings.deadline_s
         client = self.client(request.task)
-        image = client.render([state], request.seed, deadline, request.appearance)[0]
+        image = client.render([state], request.seed, deadline, request.appearance, request.frame)[0]
         return RenderResponse(image=png_b64(image))
 
     def run_request(self, request: ExecuteRequest, progress: str | None = None) -> RunRequest:
@@ -229,9 +232,8 @@ class Gateway:
         goal_state = goal_image = None
         if request.goal.state is not None:
             goal_state = logic.state_to_json(parse_state(logic, "goal.state", request.goal.state))
-        else:
-            size = self.image_size(request.task, time.monotonic() + self.settings.deadline_s)
-            goal_image = WireArray.of(decode_b64_image("goal.image", request.goal.image, size))
+        else:  # a frame is registered by the episode, as its own observations are
+            goal_image = WireArray.of(decode_b64_image("goal.image", request.goal.image))
         return RunRequest(
             task=request.task,
             start=logic.state_to_json(start),

@@ -151,6 +151,11 @@ class PlanResponse(BaseModel):
 class RenderRequest(TaskRequest, AppearanceRequest):
     state: dict[str, Any]
     seed: int = Field(0, ge=0, le=2**32 - 1)
+    frame: bool = Field(
+        False,
+        description="the cell camera's whole frame, with the table's markers round the view, "
+        "as a camera gives it (/plan registers it); false: the view in the table frame",
+    )
 
 
 class RenderResponse(BaseModel):

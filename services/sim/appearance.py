@@ -288,6 +288,12 @@ class AppearanceWorld(World):
             return self.world.render()
         return self._look(None)
 
+    def relook(self) -> None:
+        """A fresh draw of the look (lights, table, camera) for the images from now on: the
+        same state seen again later, after the light or the camera changed."""
+        if not self.appearance.is_clean:
+            self._episode = self.appearance.draw_episode(self._rng)
+
     def frame(self) -> np.ndarray:
         """The cell's camera frame at this episode's look (the camera's pose draw moves the
         frame as it moves the view: one camera)."""

@@ -17,6 +17,7 @@ from services.data.experience import Record, Recorder
 from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
 from shared.messages import MAX_AVOID
 from shared.plans import UnknownImageError, VisualActionPlan, most_confident
+from shared.registration import RegistrationError
 from shared.tasks.base import IllegalActionError, Task, World, WorldError, optimal_moves
 
 
@@ -130,11 +131,26 @@ def run_episode(
     plan does not start at the node it was meant to reach) is given to every later plan of
     the task as a step to avoid.
     """
-    if goal_image is None:
-        if goal is None:
-            raise ValueError("give the goal as a state or as an image")
-        world.reset(goal, rng)
-        goal_image = world.render()
+    from services.sim.workcell import Observer
+
+    observer = Observer(world)  # every image registered to the table frame, as a cell's are
+    try:
+        if goal_image is None:
+            if goal is None:
+                raise ValueError("give the goal as a state or as an image")
+            world.reset(goal, rng)
+            goal_image = observer.see()
+        else:
+            goal_image = observer.table_frame(goal_image)
+    except RegistrationError as exc:
+        state = world.reset(start, rng)
+        return Episode(
+            success=False,
+            reason="unknown_goal",
+            final_state=state,
+            states=[state],
+            detail=f"the goal image is not known: {exc}",
+        )
     state = world.reset(start, rng)
     episode = Episode(success=False, reason="max_steps", final_state=state, states=[state])
     last: np.ndarray | None = None  # the image seen after the last action
@@ -144,7 +160,11 @@ def run_episode(
     for _ in range(max_steps):
         if goal is not None and state == goal:
             break
-        seen = world.render()
+        try:
+            seen = observer.see()
+        except RegistrationError as exc:  # a robot that cannot see the markers does not act
+            episode.reason, episode.detail = "unknown_start", f"the start image is not known: {exc}"
+            break
         if record is not None and last is not None and not np.array_equal(last, seen):
             record(last, None, seen, state, state)
         try:
@@ -181,7 +201,9 @@ def run_episode(
             episode.states.append(state)
             episode.refused.append(True)
             if record is not None:
-                record(seen, None, world.render(), state, state)
+                after, why = observer.look()
+                if why is None:
+                    record(seen, None, after, state, state)
             if getattr(planner, "last_was_shortcut", False) is True:
                 continue
             episode.reason = "illegal_action"
@@ -194,8 +216,9 @@ def run_episode(
         episode.actions.append(plan.actions[0])
         episode.states.append(state)
         episode.refused.append(False)
-        episode.images.append(last := world.render())
-        if record is not None:
+        last, why = observer.look()  # a frame not registered: shown, not recorded
+        episode.images.append(last)
+        if record is not None and why is None:
             record(seen, plan.actions[0], last, before, state)
         if on_step is not None:
             on_step(len(episode.actions), plan.actions[0], state, episode.images[-1])

@@ -12,18 +12,21 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from tqdm import tqdm
 
 from shared import dataset as ds
 from shared.appearance import CLEAN, get_appearance, task_default
+from shared.registration import RegistrationError
 from shared.tasks import get_task
 from shared.tasks.base import Task, World, WorldError
 
 # A walk is started again this often before the run stops: T-shirt moves fail about 1 in 100.
 MAX_ATTEMPTS = 5
+# A frame whose markers are not found is looked at again under a fresh look this often.
+MAX_LOOKS = 5
 
 
 @dataclass(frozen=True)
@@ -47,12 +50,18 @@ class GenerateConfig:
     # from the episode's own seed; "shifted" doubles every range (test data only). None: the
     # task's default (`shared.appearance.task_default`: camera for the T-shirt, else clean).
     appearance: str | None = None
+    # The share of no-action pairs whose second image is the same state under a fresh draw of
+    # the look (lights, table, camera), as a robot sees it again after the light or the camera
+    # changed; 0: both images share their episode's look, as before this option existed.
+    look_pairs: float = 0.0
 
     def __post_init__(self) -> None:
         if self.pairs < 1:
             raise ValueError(f"pairs must be at least 1, got {self.pairs}")
         if not 0.0 <= self.action_fraction <= 1.0:
             raise ValueError(f"action_fraction must be in [0, 1], got {self.action_fraction}")
+        if not 0.0 <= self.look_pairs <= 1.0:
+            raise ValueError(f"look_pairs must be in [0, 1], got {self.look_pairs}")
         if self.shard_size < 1 or self.workers < 1:
             raise ValueError("shard_size and workers must be at least 1")
         if self.episode_length is not None and self.episode_length < 1:
@@ -91,15 +100,59 @@ def balanced_starts(task: Task, seed: int, first_flags: list[int]) -> list[int |
     return out
 
 
+class Camera:
+    """What a dataset stores of what the world shows (services.sim.workcell.Observer: the
+    canonical render at `clean`, else the cell's frame registered to the table frame), a frame
+    whose markers are not found looked at again under a fresh look. Keeps what registration
+    measured, for the manifest."""
+
+    def __init__(self, world: World) -> None:
+        from services.sim.workcell import Observer
+
+        self.world = world
+        observer = Observer(world)
+        self.registration = observer.registration if observer.frames else None
+        self.errors: list[float] = []  # corner RMS, canonical px, per registered frame
+        self.offsets: list[float] = []
+        self.refused: list[str] = []
+
+    def image(self) -> np.ndarray:
+        if self.registration is None:
+            return self.world.render()
+        for _ in range(MAX_LOOKS):
+            try:
+                registered = self.registration.register(self.world.frame())  # as observe()
+            except RegistrationError as exc:
+                self.refused.append(str(exc))
+                self.world.relook()  # type: ignore[attr-defined]
+                continue
+            self.errors.append(registered.error_px)
+            self.offsets.append(registered.offset_px)
+            return registered.image
+        raise WorldError(f"no frame registered in {MAX_LOOKS} looks, last: {self.refused[-1]}")
+
+    def relook(self) -> None:
+        self.world.relook()  # type: ignore[attr-defined]
+
+
 def make_episode(
-    task: Task, world: World, seed: int, start: int, flags: list[int], first: int | None = None
+    task: Task,
+    world: World,
+    seed: int,
+    start: int,
+    flags: list[int],
+    first: int | None = None,
+    camera: Camera | None = None,
+    look_pairs: float = 0.0,
 ) -> tuple[list[dict], int]:
     """Tuples start .. start + len(flags) - 1: one walk from state `first` (an index into
     task.all_states(), or None for a random state), each tuple's second state the next one's
     first. Seeded by (seed, start, attempt) alone, so the bytes do not depend on how episodes
     are spread over workers (a camera-like world seeds its look from the same rng's state at
     reset, without drawing from it); a walk whose physics fails starts again. Returns the tuples and
-    the number of failed attempts before them."""
+    the number of failed attempts before them. `look_pairs` > 0 draws from the rng (whether
+    each no-action pair spans two looks), so the tuples differ from a run without."""
+    camera = camera or Camera(world)
     for attempt in range(MAX_ATTEMPTS):
         rng = np.random.default_rng([seed, start, attempt])
         try:
@@ -109,8 +162,8 @@ def make_episode(
                 raise WorldError("settled state differs from the placed one")
             rows = []
             for is_action in flags:
-                image1 = world.render()
-                action = None
+                image1 = camera.image()
+                action, spans = None, False
                 if is_action:
                     legal = task.legal_actions(state1)
                     action = world.demonstrated(legal[int(rng.integers(len(legal)))], rng)
@@ -121,14 +174,18 @@ def make_episode(
                     state2 = world.perturb(rng)
                     if state2 != state1:
                         raise WorldError("the perturbed state differs from the placed one")
+                    spans = look_pairs > 0 and bool(rng.random() < look_pairs)
+                    if spans:
+                        camera.relook()
                 rows.append(
                     {
                         "image1": image1,
-                        "image2": world.render(),
+                        "image2": camera.image(),
                         "a": np.uint8(is_action),
                         "u": task.action_to_array(action),
                         "state1": task.state_to_array(state1),
                         "state2": task.state_to_array(state2),
+                        "look_pair": spans,  # not stored: counted for the manifest
                     }
                 )
                 state1 = state2
@@ -138,32 +195,48 @@ def make_episode(
     raise WorldError(f"episode at tuple {start}: physics failed {MAX_ATTEMPTS} times, last: {last}")
 
 
-_worker: tuple[Task, World] | None = None
+_worker: tuple[Task, Camera, float] | None = None
 
 
 def _init_worker(
-    task_name: str, image_size: int, options: dict[str, Any], appearance: str = CLEAN
+    task_name: str,
+    image_size: int,
+    options: dict[str, Any],
+    appearance: str = CLEAN,
+    look_pairs: float = 0.0,
 ) -> None:
     global _worker
     from services.sim.worlds import make_world
 
+    task = get_task(task_name)
     world = make_world(task_name, image_size, appearance=appearance, **options)
-    _worker = (get_task(task_name), world)
+    _worker = (task, Camera(world), look_pairs)
 
 
 Episode = tuple[int, list[int], int | None]  # first tuple, action flags, first state's index
 
 
-def _make_chunk(job: tuple[int, list[Episode]]) -> tuple[list[dict], int]:
+class Chunk(NamedTuple):
+    rows: list[dict]
+    retries: int  # walks started again after the physics failed
+    errors: list[float]  # registration's corner RMS per registered frame
+    offsets: list[float]
+    refused: list[str]  # frames looked at again, and why
+
+
+def _make_chunk(job: tuple[int, list[Episode]]) -> Chunk:
     assert _worker is not None
     seed, episodes = job
-    task, world = _worker
+    task, camera, look_pairs = _worker
+    camera.errors, camera.offsets, camera.refused = [], [], []
     rows, retries = [], 0
     for start, flags, first in episodes:
-        made, failed = make_episode(task, world, seed, start, flags, first)
+        made, failed = make_episode(
+            task, camera.world, seed, start, flags, first, camera, look_pairs
+        )
         rows += made
         retries += failed
-    return rows, retries
+    return Chunk(rows, retries, camera.errors, camera.offsets, camera.refused)
 
 
 def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
@@ -177,7 +250,8 @@ def generate(
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass overwrite to replace it")
-    spec = get_task(cfg.task).spec  # fails fast on an unknown task
+    task = get_task(cfg.task)  # fails fast on an unknown task
+    spec = task.spec
     from services.sim.worlds import world_class
 
     partial = out.with_name(f".{out.name}.partial")
@@ -188,7 +262,7 @@ def generate(
     length = cfg.episode_length or world_class(cfg.task).episode_length
     begins = range(0, cfg.pairs, length)
     firsts: list[int | None] = (
-        balanced_starts(get_task(cfg.task), cfg.seed, [int(flags[s]) for s in begins])
+        balanced_starts(task, cfg.seed, [int(flags[s]) for s in begins])
         if cfg.starts == "balanced"
         else [None] * len(begins)
     )
@@ -201,6 +275,10 @@ def generate(
     shards: list[dict[str, Any]] = []
     pending: list[dict] = []
     retries = 0  # episodes started again after the physics failed
+    errors: list[float] = []
+    offsets: list[float] = []
+    refused: list[str] = []
+    look_pairs = 0
 
     def flush(rows: list[dict]) -> None:
         name = ds.shard_name(len(shards))
@@ -208,19 +286,23 @@ def generate(
         shards.append({"file": name, "count": len(rows), "sha256": sha})
 
     bar = tqdm(total=cfg.pairs, unit="pair", desc=f"generate {cfg.task}", disable=not progress)
+    init = (cfg.task, cfg.image_size, cfg.world_options, cfg.appearance, cfg.look_pairs)
     if cfg.workers == 1:
-        _init_worker(cfg.task, cfg.image_size, cfg.world_options, cfg.appearance)
+        _init_worker(*init)
         results = map(_make_chunk, jobs)
         pool = None
     else:
-        init = (cfg.task, cfg.image_size, cfg.world_options, cfg.appearance)
         pool = mp.get_context("spawn").Pool(cfg.workers, initializer=_init_worker, initargs=init)
         results = pool.imap(_make_chunk, jobs)
     try:
-        for rows, failed in results:
-            retries += failed
-            pending.extend(rows)
-            bar.update(len(rows))
+        for chunk in results:
+            retries += chunk.retries
+            errors += chunk.errors
+            offsets += chunk.offsets
+            refused += chunk.refused
+            look_pairs += sum(row["look_pair"] for row in chunk.rows)
+            pending.extend(chunk.rows)
+            bar.update(len(chunk.rows))
             while len(pending) >= cfg.shard_size:
                 flush(pending[: cfg.shard_size])
                 pending = pending[cfg.shard_size :]
@@ -245,7 +327,11 @@ def generate(
             "tuples": cfg.pairs,
             "action_pairs": n_action,
             "no_action_pairs": cfg.pairs - n_action,
+            "look_pairs": look_pairs,  # no-action pairs whose images span two looks
         },
+        # the table's markers (null: none) and how the images were brought to the table frame
+        "markers": None if task.workcell is None else task.workcell.to_json(),
+        "registration": registration_summary(errors, offsets, refused),
         "config": {
             **{k: v for k, v in asdict(cfg).items() if k != "workers"},
             "episode_length": length,
@@ -256,3 +342,20 @@ def generate(
     ds.write_manifest(partial, manifest)
     ds.publish(partial, out)
     return {**manifest, "seconds": seconds, "images_per_second": 2 * cfg.pairs / seconds}
+
+
+def registration_summary(
+    errors: list[float], offsets: list[float], refused: list[str]
+) -> dict[str, Any] | None:
+    """What registration measured over a dataset's frames; None when the images are the
+    canonical camera's own renders (nothing registered)."""
+    if not errors and not refused:
+        return None
+    return {
+        "frames": len(errors),
+        "refused": len(refused),  # frames whose markers were not found: looked at again
+        "refusals": sorted(set(refused))[:5],
+        "error_px_p50": round(float(np.median(errors)), 3) if errors else None,
+        "error_px_max": round(float(np.max(errors)), 3) if errors else None,
+        "offset_px_max": round(float(np.max(offsets)), 2) if offsets else None,
+    }

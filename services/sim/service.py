@@ -38,7 +38,7 @@ from shared.tasks.base import World
 from shared.validation import (
     FieldError,
     check_appearance,
-    check_images,
+    check_frames,
     check_task,
     parse_state,
 )
@@ -90,7 +90,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         images = []
         for state in states:
             render_world.reset(state, rng)
-            images.append(render_world.render())
+            images.append(render_world.frame() if request.frame else render_world.render())
         return RenderReply(images=WireArray.of(np.stack(images)))
 
     def run(payload: bytes) -> RunReply:
@@ -104,7 +104,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         )
         goal_image = None
         if request.goal_image is not None:
-            goal_image = check_images("goal_image", request.goal_image, size)
+            goal_image = check_frames("goal_image", request.goal_image)  # registered in the loop
         if (goal is None) == (goal_image is None):
             raise FieldError("goal_state", "give exactly one of goal_state and goal_image")
         run_world = world("run", check_appearance(request.appearance, trained))

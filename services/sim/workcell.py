@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.sim.rendering import OffscreenCamera, mujoco
+from shared.registration import Registration, RegistrationError, to_table_frame
 from shared.tasks.base import World
 from shared.workcell import Marker, Workcell, marker_cells
 
@@ -192,8 +193,6 @@ PLACES: dict[str, list[tuple[int, tuple[float, float], float]]] = {
 def layout(world: World) -> Workcell:
     """The task's workcell designed from its world's canonical camera, with the levels its
     markers' cells take in a clean frame (that frame rendered with the markers in place)."""
-    from shared.registration import Registration
-
     name = world.task.name
     camera = world.camera.camera
     markers = design(Pinhole.of(world.model, world.data, camera), PLACES[name])
@@ -222,3 +221,42 @@ def true_homography(moved: Pinhole, nominal: Pinhole) -> np.ndarray:
     near = points[(nominal.position - points) @ nominal.axes[2] > 0.05]  # in front of it
     homography, _ = cv2.findHomography(moved.to_frame(near), nominal.project(near) - 0.5, 0)
     return homography
+
+
+class Observer:
+    """What a model is given of what a world shows: at `clean`, or for a task without
+    markers, the canonical render (the camera sits at the nominal pose, which registering its
+    frame would only approximate); at other levels, the cell's frame registered to the table
+    frame. `see()` raises RegistrationError when the frame's markers are not found."""
+
+    def __init__(self, world: World) -> None:
+        self.world = world
+        workcell = world.task.workcell
+        appearance = getattr(world, "appearance", None)  # an AppearanceWorld's level
+        self.registration = None if workcell is None else Registration(workcell, world.image_size)
+        self.frames = self.registration is not None and not (
+            appearance is None or appearance.is_clean
+        )
+
+    def see(self) -> np.ndarray:
+        image, why = self.look()
+        if why is not None:
+            raise RegistrationError(why)
+        return image
+
+    def look(self) -> tuple[np.ndarray, str | None]:
+        """What the camera shows in the table frame and None, or, when its markers are not
+        found, the frame only resized (to show, never to plan from) and why."""
+        if not self.frames:
+            return self.world.render(), None
+        assert self.registration is not None
+        image, (why,) = to_table_frame(self.registration, [self.world.frame()])
+        return image[0], why
+
+    def table_frame(self, image: np.ndarray) -> np.ndarray:
+        """An image given from outside (a goal): at the model's size as it is, else a frame
+        registered (RegistrationError when it cannot be)."""
+        size = self.world.image_size
+        if image.shape[:2] == (size, size) or self.registration is None:
+            return image
+        return self.registration.register(image).image

@@ -29,7 +29,10 @@ def test_dataset_contents(tmp_path):
     data = load_dataset(tmp_path / "d")
     task = get_task("box_stacking")
     assert len(data) == 40
-    assert result["counts"] == {"tuples": 40, "action_pairs": 26, "no_action_pairs": 14}
+    assert result["counts"] == {
+        "tuples": 40, "action_pairs": 26, "no_action_pairs": 14, "look_pairs": 0
+    }
+    assert result["registration"] is None  # clean: the canonical camera's own renders
     assert data.image1.shape == (40, 64, 64, 3) and data.image1.dtype == np.uint8
     assert [s["count"] for s in data.manifest["shards"]] == [16, 16, 8]
     for i in range(len(data)):
@@ -208,3 +211,24 @@ def test_the_manifest_records_the_appearance(tmp_path):
     assert recorded["image"]["jpeg_quality"] == [80, 95]
     assert np.array_equal(clean.state1, camera.state1) and np.array_equal(clean.u, camera.u)
     assert not np.array_equal(clean.image1, camera.image1)
+    # a camera's frames are registered to the table frame before they are stored
+    registration = camera.manifest["registration"]
+    assert registration["frames"] >= 12 and registration["error_px_max"] <= 1.5
+    assert camera.manifest["markers"] == get_task("box_stacking").workcell.to_json()
+    assert clean.manifest["registration"] is None
+
+
+def test_look_pairs_show_one_state_under_two_looks(tmp_path):
+    """A no-action pair across looks: the same state, the second image another draw of the
+    lights, table and camera; registration keeps the two in one table frame."""
+    result = _generate(
+        tmp_path / "d", pairs=24, action_fraction=0.0, appearance="camera", look_pairs=1.0
+    )
+    assert result["counts"]["look_pairs"] == 24
+    data = load_dataset(tmp_path / "d")
+    assert np.array_equal(data.state1, data.state2)
+    # another look, not only another draw of the sensor noise: the table's mean colour moves
+    shift = np.abs(data.image1.mean((1, 2)) - data.image2.mean((1, 2))).max(1)
+    assert np.median(shift) > 6.0  # 10.4 here; 2.9 for pairs within one look
+    with pytest.raises(ValueError, match="look_pairs must be in"):
+        GenerateConfig(look_pairs=1.5)
