@@ -68,7 +68,7 @@ def decode_b64_image(field: str, text: str, size: int | None = None) -> np.ndarr
     except (binascii.Error, ValueError):
         raise FieldError(field, "not valid base64") from None
     try:
-        return decode_image(data, size, max_side=MAX_FRAME)
+        return decode_image(data, size, max_side=None if size else MAX_FRAME)
     except ImageError as exc:
         raise FieldError(field, str(exc)) from None
 

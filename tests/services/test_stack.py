@@ -272,6 +272,59 @@ def test_the_closed_loop_stops_before_acting_towards_a_goal_it_does_not_know(htt
     assert result["steps"] == [] and result["detail"].startswith("the goal image is unlike")
 
 
+def frame(http: httpx.Client, state: dict, seed: int = 0, task: str = "box_stacking") -> str:
+    """What the cell's camera sees of `state`: the whole frame, markers and all."""
+    body = {"task": task, "state": state, "seed": seed, "frame": True}
+    reply = http.post("/render", json=body)
+    assert reply.status_code == 200, reply.text
+    return reply.json()["image"]
+
+
+def covered(image_b64: str, rows: slice) -> str:
+    """The frame with a band of it painted over, as a sleeve or a hand would."""
+    pixels = np.array(Image.open(io.BytesIO(base64.b64decode(image_b64))))
+    pixels[rows] = 128
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
+
+
+def test_a_camera_frame_is_registered_to_the_table_frame_and_planned(http):
+    start, goal = frame(http, START, seed=5), frame(http, GOAL, seed=6)
+    assert Image.open(io.BytesIO(base64.b64decode(start))).size == (320, 320)
+    reply = http.post(
+        "/plan", json={"task": "box_stacking", "start": {"image": start}, "goal": {"image": goal}}
+    )
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(START, GOAL, reply.json())  # plan images in the table frame, 64 px
+    start, goal = (frame(http, s, 9, "cloth_folding") for s in (CLOTH_START, CLOTH_GOAL))
+    from_frames = {"task": "cloth_folding", "start": {"image": start}, "goal": {"image": goal}}
+    reply = http.post("/plan", json=from_frames)
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(CLOTH_START, CLOTH_GOAL, reply.json(), task=CLOTH)
+
+
+@pytest.mark.parametrize("end", ["start", "goal"])
+def test_a_frame_whose_markers_are_covered_is_not_known_and_the_reason_says_so(http, end):
+    shown = covered(frame(http, START if end == "start" else GOAL, seed=3), slice(240, 320))
+    body = {**GOOD, end: {"image": shown}}
+    result = http.post("/plan", json=body).json()
+    assert result["plans"] == [] and not result["match"][end]["known"]
+    assert result["reason"].startswith(f"the {end} image is not known: the table markers were not")
+    assert "missing ids" in result["reason"]
+
+
+def test_execute_reaches_a_goal_given_as_a_camera_frame(http):
+    body = {**GOOD, "goal": {"image": frame(http, GOAL, seed=8)}, "seed": 2}
+    reply = http.post("/execute", json=body)
+    assert reply.status_code == 200, reply.text
+    assert reply.json()["success"], reply.json()["reason"]
+    body["goal"] = {"image": covered(frame(http, GOAL, seed=8), slice(240, 320))}
+    result = http.post("/execute", json=body).json()
+    assert result["reason"] == "unknown_goal" and result["steps"] == []
+    assert "table markers were not found" in result["detail"]
+
+
 def test_plan_from_a_state_to_itself_has_no_action(http):
     reply = http.post(
         "/plan",
@@ -314,7 +367,7 @@ BAD_INPUTS = [
         422,
         "image",
     ),
-    ("wrong size", {**GOOD, "start": {"image": image_of((65, 64))}}, 422, "image"),
+    ("too small", {**GOOD, "start": {"image": image_of((15, 64))}}, 422, "image"),
     ("transparent RGBA", {**GOOD, "start": {"image": image_of((64, 64), "RGBA")}}, 422, "image"),
     ("max_plans out of range", {**GOOD, "max_plans": 0}, 422, "max_plans"),
     ("max_plans not a number", {**GOOD, "max_plans": "many"}, 422, "max_plans"),

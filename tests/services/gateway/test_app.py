@@ -28,6 +28,12 @@ def test_images_decode_from_base64_with_or_without_a_data_url():
     assert decode_b64_image("start.image", "data:image/png;base64," + png_b64(8), 8)[0, 0, 0] == 255
 
 
+def test_a_camera_frame_may_have_any_size_within_bounds():
+    assert decode_b64_image("start.image", png_b64(320)).shape == (320, 320, 3)
+    with pytest.raises(FieldError, match="expected 16 to 4096 pixels a side"):
+        decode_b64_image("start.image", png_b64(8))
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
