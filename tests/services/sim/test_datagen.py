@@ -30,7 +30,10 @@ def test_dataset_contents(tmp_path):
     task = get_task("box_stacking")
     assert len(data) == 40
     assert result["counts"] == {
-        "tuples": 40, "action_pairs": 26, "no_action_pairs": 14, "look_pairs": 0
+        "tuples": 40,
+        "action_pairs": 26,
+        "no_action_pairs": 14,
+        "look_pairs": 0,
     }
     assert result["registration"] is None  # clean: the canonical camera's own renders
     assert data.image1.shape == (40, 64, 64, 3) and data.image1.dtype == np.uint8
