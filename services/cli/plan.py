@@ -11,20 +11,30 @@ from services.cli.common import json_arg, single_thread_torch
 
 
 def _image_or_state(task, world, image: Path | None, state: str | None, rng, name: str):
-    """A start or goal given as a PNG/JPEG file or as a state rendered by the sim."""
+    """A start or goal given as a PNG/JPEG file (a camera frame, registered to the table
+    frame; an image at the model's size as it is) or as a state the sim shows."""
     from shared.images import decode_image
+    from shared.registration import Registration, to_table_frame
+    from shared.validation import MAX_FRAME
 
     if (image is None) == (state is None):
         raise ValueError(f"give exactly one of --{name}-image and --{name}-state")
     if image is not None:
-        return decode_image(Path(image).read_bytes(), size=world.image_size), None
+        shown = decode_image(Path(image).read_bytes(), max_side=MAX_FRAME)
+        registration = Registration(task.workcell, world.image_size)
+        (registered,), (why,) = to_table_frame(registration, [shown])
+        if why is not None:
+            raise ValueError(f"--{name}-image is not known: {why}")
+        return registered, None
     if world.task is None:
         raise ValueError(
             f"task {task.name!r} has no simulator to render --{name}-state; give --{name}-image"
         )
+    from services.sim.workcell import Observer
+
     parsed = task.parse_state(json_arg(state))
     world.reset(parsed, rng)
-    return world.render(), parsed
+    return Observer(world).see(), parsed
 
 
 class _NoWorld:

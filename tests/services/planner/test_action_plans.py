@@ -147,7 +147,7 @@ def test_cli_plan_from_states_and_images(tiny_model, tmp_path):
                 "--goal-state",
                 '{"stacks": [["red"], ["green", "blue"], ["yellow"]]}',
             ],
-            "16x16, expected 32x32",
+            "--start-image is not known: the table markers were not found: 0 of 4",
         ),
         (
             ["--goal-state", '{"stacks": [["red"], ["green", "blue"], ["yellow"]]}'],
