@@ -82,8 +82,10 @@ def declare_model_task(vae_config: dict) -> None:
     if spec is not None:
         from shared.tasks import declare_task
         from shared.tasks.spec import TaskSpec
+        from shared.workcell import Workcell
 
-        declare_task(TaskSpec.from_json(spec))
+        markers = Workcell.from_json(vae_config["dataset"].get("markers"))
+        declare_task(TaskSpec.from_json(spec), markers)
 
 
 @dataclass

@@ -21,6 +21,7 @@ from shared import dataset as ds
 from shared.images import encode_png
 from shared.tasks.declared import DataTask, TaskDeclaration
 from shared.tasks.spec import TaskSpec
+from shared.workcell import Workcell
 
 
 def _split_of(directory: Path, manifest: dict[str, Any]) -> str:
@@ -65,7 +66,10 @@ def export_dataset(
     splits = [_split_of(s, m) for s, m in zip(sources, manifests, strict=True)]
     if len(set(splits)) != len(splits):
         raise DataImportError(f"two datasets of one split ({splits}); export them one at a time")
-    declaration = TaskDeclaration.of_spec(first, size, manifests[0].get("settings"))
+    # the exported images are in the table frame already: at the declared size, an import
+    # takes them as they are, and the markers stay for the frames a camera adds later
+    markers = Workcell.from_json(manifests[0].get("markers"))
+    declaration = TaskDeclaration.of_spec(first, size, manifests[0].get("settings"), markers)
     task = DataTask(TaskSpec(first.task, first.action, None))
     partial = out.with_name(f".{out.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)

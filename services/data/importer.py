@@ -26,6 +26,7 @@ from tqdm import tqdm
 from services.data.pairs import DataImportError, count_lines, pairs_file, read_rows
 from shared import dataset as ds
 from shared.images import ImageError, decode_image
+from shared.registration import Registration, to_table_frame
 from shared.tasks import get_task, task_names
 from shared.tasks.base import InvalidActionError
 from shared.tasks.declared import DataTask, DeclarationError, TaskDeclaration
@@ -57,6 +58,7 @@ class Checked:
 
     declaration: TaskDeclaration
     pairs: Path
+    registration: Registration | None = None  # the declared markers'
     rows: int = 0
     action_pairs: int = 0
     images: int = 0  # distinct image files
@@ -104,13 +106,22 @@ def _image_path(source: Path, where: str, key: str, relative: str) -> Path:
     return path
 
 
-def load_image(path: Path, size: int) -> tuple[np.ndarray, bool]:
-    """The image as uint8 (size, size, 3), and whether it had to be cropped and resized."""
+def load_image(
+    path: Path, size: int, registration: Registration | None = None
+) -> tuple[np.ndarray, bool]:
+    """The image as uint8 (size, size, 3), and whether it had to be cropped and resized; with
+    a `registration` (the task's markers), a camera frame registered to the table frame
+    (ImageError when its markers are not found)."""
     try:
-        image = decode_image(path.read_bytes(), at_least=size)
+        image = decode_image(path.read_bytes(), at_least=None if registration else size)
     except OSError as exc:
         raise ImageError(f"cannot be read ({exc.strerror or exc})") from None
     h, w = image.shape[:2]
+    if registration is not None:
+        (registered,), (why,) = to_table_frame(registration, [image])
+        if why is not None:
+            raise ImageError(why)
+        return registered, (h, w) != (size, size)
     if (h, w) == (size, size):
         return image, False
     side = min(h, w)  # the centre square keeps the aspect: nothing stretched
@@ -141,8 +152,10 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
     declaration = read_declaration(source, cfg.name)
     task = DataTask(declaration.spec)
     pairs = pairs_file(source)
-    found = Checked(declaration, pairs)
     size = declaration.image_size
+    markers = declaration.markers
+    found = Checked(declaration, pairs, None if markers is None else Registration(markers, size))
+    refused: list[str] = []  # frames whose markers were not found, reported all at once
     checked_images: set[Path] = set()
     seen: dict[bytes, int] = {}  # row key -> its first line
     splits_given: list[bool] = []
@@ -160,6 +173,11 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
                     w, h = _checked_size(path, size)
                 except (ImageError, OSError) as exc:
                     raise DataImportError(f"{where}: {key}: {relative}: {exc}") from None
+                if found.registration is not None:
+                    try:
+                        load_image(path, size, found.registration)
+                    except ImageError as exc:
+                        refused.append(f"{where}: {key}: {relative}: {exc}")
                 found.sizes[f"{w}x{h}"] += 1
                 found.resized += (w, h) != (size, size)
                 found.cropped += w != h
@@ -192,6 +210,11 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
     bar.close()
     if found.rows == 0:
         raise DataImportError(f"{pairs}: no rows")
+    if refused:
+        raise DataImportError(
+            f"{len(refused)} image(s) could not be registered to the table frame (task.json's "
+            f"markers); remove their rows or retake them. First: " + "; ".join(refused[:3])
+        )
     check_name(source, declaration)  # after every file: a user fixes all there is at once
     found.images = len(checked_images)
     if not splits_given[0]:
@@ -277,8 +300,8 @@ def _write(
     }
     bar = tqdm(total=found.rows, unit="pair", desc="import", disable=not progress)
     for index, row in enumerate(read_rows(found.pairs)):
-        image1, _ = load_image(source / row.image1, size)
-        image2, _ = load_image(source / row.image2, size)
+        image1, _ = load_image(source / row.image1, size, found.registration)
+        image2, _ = load_image(source / row.image2, size, found.registration)
         action = None if row.action is None else task.parse_action(row.action)
         writer = writers[found.row_split[index]]
         writer.add(image1, image2, task.action_to_array(action), names[found.row_episode[index]])
@@ -344,6 +367,8 @@ class _SplitWriter:
                 "no_action_pairs": self.count - self.action_pairs,
             },
             "settings": dict(declaration.settings),
+            # the table's markers; images were registered to the table frame with them
+            "markers": None if declaration.markers is None else declaration.markers.to_json(),
             "source": {"pairs": str(self.found.pairs), "split": self.found.split_from},
             "episodes": list(self.episodes),
             "shards": self.shards,

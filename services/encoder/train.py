@@ -248,6 +248,7 @@ def train_vae(
             **{k: data.manifest[k] for k in ("task", "seed", "image_size", "counts")},
             "appearance": manifest_appearance(data.manifest),  # what the model expects to see
             "spec": data.spec.to_json(),  # serving a task defined by its data needs it
+            "markers": data.manifest.get("markers"),  # and its table's markers, if any
         },
         "train_seconds": time.perf_counter() - started,
         "final": record,

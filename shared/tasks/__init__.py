@@ -16,6 +16,7 @@ from shared.tasks.cloth_folding import ClothFolding
 from shared.tasks.declared import DataTask
 from shared.tasks.spec import TaskSpec
 from shared.tasks.tshirt_folding import TshirtFolding
+from shared.workcell import Workcell
 
 _TASKS: dict[str, Callable[[], Task]] = {
     "box_stacking": BoxStacking,
@@ -49,16 +50,19 @@ def _builtin(name: str) -> Task:
         raise TaskError(f"unknown task {name!r}; known tasks are {known_tasks()}") from None
 
 
-def declare_task(spec: TaskSpec) -> Task:
+def declare_task(spec: TaskSpec, workcell: Workcell | None = None) -> Task:
     """The task of a dataset's or model's spec: the built-in one of that name, else a
-    data-only task made from the spec (and remembered, so that `get_task` finds it)."""
+    data-only task made from the spec and its data's markers (and remembered, so that
+    `get_task` finds it)."""
     if spec.task in _TASKS:
         return get_task(spec.task)
     known = _DECLARED.get(spec.task)
     if known is not None and known.spec != spec:
         raise TaskError(f"task {spec.task!r} is already declared with another spec")
+    if known is not None and workcell is not None and known.workcell != workcell:
+        raise TaskError(f"task {spec.task!r} is already declared with other markers")
     if known is None:
-        known = _DECLARED[spec.task] = DataTask(spec)
+        known = _DECLARED[spec.task] = DataTask(spec, workcell)
     return known
 
 

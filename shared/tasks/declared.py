@@ -27,6 +27,7 @@ import numpy as np
 
 from shared.tasks.base import InvalidActionError, InvalidStateError, Task
 from shared.tasks.spec import NULL, ArraySpec, SpecError, TaskSpec
+from shared.workcell import Workcell, WorkcellError
 
 Action = tuple[int, ...]  # the stored integers, in the declared order
 
@@ -113,6 +114,9 @@ class TaskDeclaration:
     spec: TaskSpec
     image_size: int
     settings: dict[str, Any] = field(default_factory=dict)
+    # the table's markers: frames are registered to the table frame on import (None: a camera
+    # that never moves, images only centre-cropped and resized)
+    markers: Workcell | None = None
 
     @property
     def name(self) -> str:
@@ -122,10 +126,13 @@ class TaskDeclaration:
     def from_json(cls, obj: Any) -> TaskDeclaration:
         if not isinstance(obj, dict):
             raise DeclarationError("expected a JSON object")
-        unknown = sorted(set(obj) - {"name", "image_size", "frame", "action", "settings"})
+        unknown = sorted(
+            set(obj) - {"name", "image_size", "frame", "action", "settings", "markers"}
+        )
         if unknown:
             raise DeclarationError(
-                f"unknown key {unknown[0]!r}; a task has name, image_size, frame, action, settings"
+                f"unknown key {unknown[0]!r}; a task has name, image_size, frame, action, "
+                "settings, markers"
             )
         name = obj.get("name")
         if not isinstance(name, str) or not _NAME.match(name):
@@ -175,14 +182,23 @@ class TaskDeclaration:
                 raise DeclarationError(f"settings.{key}: expected an integer")
             if value <= 0 and key != "w_eps":
                 raise DeclarationError(f"settings.{key}: must be positive")
-        return cls(TaskSpec(name, action, None), size, dict(settings))
+        try:
+            markers = Workcell.from_json(obj.get("markers"))
+        except WorkcellError as exc:
+            raise DeclarationError(str(exc)) from None
+        return cls(TaskSpec(name, action, None), size, dict(settings), markers)
 
     @classmethod
     def of_spec(
-        cls, spec: TaskSpec, image_size: int, settings: dict[str, Any] | None = None
+        cls,
+        spec: TaskSpec,
+        image_size: int,
+        settings: dict[str, Any] | None = None,
+        markers: Workcell | None = None,
     ) -> TaskDeclaration:
         """The declaration of any dataset's actions (export writes it); its states are dropped."""
-        return cls(TaskSpec(spec.task, spec.action, None), image_size, dict(settings or {}))
+        spec = TaskSpec(spec.task, spec.action, None)
+        return cls(spec, image_size, dict(settings or {}), markers)
 
     def to_json(self) -> dict[str, Any]:
         action = self.spec.action
@@ -211,6 +227,7 @@ class TaskDeclaration:
         out["action"] = fields
         if self.settings:
             out["settings"] = dict(self.settings)
+        out["markers"] = None if self.markers is None else self.markers.to_json()
         return out
 
 
@@ -233,9 +250,10 @@ def _check_tree(names: Sequence[str]) -> None:
 class DataTask(Task[None, Action]):
     """Codecs of a declared task: actions in and out, no states, no rules, no world."""
 
-    def __init__(self, spec: TaskSpec) -> None:
+    def __init__(self, spec: TaskSpec, workcell: Workcell | None = None) -> None:
         if spec.state is not None:
             raise SpecError(f"{spec.task}: a data-only task declares no states")
+        self.__dict__["workcell"] = workcell  # its data's markers, not a built-in layout
         self.name = spec.task
         self._spec = spec
         self.fields = spec.action.names

@@ -257,3 +257,66 @@ def test_a_large_jpeg_is_scaled_and_counted(recorded, tmp_path):
     assert image.shape == (32, 32, 3)
     bright = (image > 220).all(-1)
     assert bright[4:12, 4:12].all() and not bright[20:, 20:].any()  # the square, top left
+
+
+def _frames_folder(root, covered_row=None):
+    """Camera frames of box-stacking states, markers round the view, under a declared task
+    that carries the cell's markers."""
+    from services.sim.worlds import make_world
+    from shared.tasks import get_task
+
+    from .conftest import TASK
+
+    root.mkdir()
+    workcell = get_task("box_stacking").workcell
+    (root / "task.json").write_text(json.dumps({**TASK, "markers": workcell.to_json()}))
+    lines, rng = [], np.random.default_rng(4)
+    with make_world("box_stacking", 32, appearance="camera") as world:
+        states = world.task.all_states()
+        for i in range(4):
+            world.reset(states[i * 7], rng)
+            for k in (1, 2):
+                frame = world.frame()
+                if i == covered_row and k == 2:
+                    frame[230:] = 128  # a hand over the near markers
+                Image.fromarray(frame).save(root / f"f{i}{k}.png")
+            lines.append(json.dumps({"image1": f"f{i}1.png", "image2": f"f{i}2.png",
+                                     "action": None, "episode": f"e{i}"}))  # fmt: skip
+    (root / "pairs.jsonl").write_text("\n".join(lines) + "\n")
+    return root, workcell
+
+
+def test_frames_are_registered_to_the_table_frame_with_task_json_s_markers(tmp_path):
+    from services.runtime import declare_model_task
+    from shared.registration import Registration
+    from shared.tasks import get_task
+
+    source, workcell = _frames_folder(tmp_path / "rec")
+    config = ImportConfig(source=source, out=tmp_path / "out", name="framed", test_fraction=0)
+    import_dataset(config, progress=False)
+    data = load_dataset(tmp_path / "out" / "train")
+    assert data.image1.shape == (4, 32, 32, 3)
+    assert data.manifest["markers"] == workcell.to_json()
+    expected = Registration(workcell, 32).register(np.array(Image.open(source / "f01.png")))
+    assert np.array_equal(data.image1[0], expected.image)
+    declared = json.loads((tmp_path / "out" / "task.json").read_text())
+    assert declared["markers"] == workcell.to_json()
+    # a model of it serves the task with its markers: its encoder registers frames with them
+    declare_model_task({"dataset": {"spec": data.manifest["spec"], "markers": declared["markers"]}})
+    assert get_task("framed").workcell == workcell
+    assert get_task("framed").info()["markers"] == workcell.to_json()
+
+
+def test_a_frame_whose_markers_are_not_found_is_refused_naming_its_row(tmp_path):
+    source, _ = _frames_folder(tmp_path / "rec", covered_row=2)
+    with pytest.raises(DataImportError, match=r"1 image\(s\) could not be registered.*:3: "
+                       r"image2: f22.png: the table markers were not found"):  # fmt: skip
+        import_dataset(ImportConfig(source=source, out=tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_markers_in_task_json_are_refused(recorded, tmp_path):
+    from .conftest import TASK
+
+    (recorded / "task.json").write_text(json.dumps({**TASK, "markers": {"markers": "x"}}))
+    refuse(recorded, tmp_path, "markers")
