@@ -18,6 +18,7 @@ import numpy as np
 import zenoh
 
 from services.sim.closed_loop import Episode, run_episode
+from services.sim.workcell import Observer
 from services.sim.worlds import make_world
 from shared.appearance import task_default
 from shared.bus import (
@@ -174,9 +175,12 @@ def run_robot(
     max_steps: int = 20,
     seed: int = 0,
     report: bool = False,
+    appearance: str | None = None,
 ) -> Episode:
     """Reach `goal` closed loop over the public API; with `report`, every action it executes
-    goes back to the gateway as experience."""
+    goes back to the gateway as experience. Its camera looks as the task's data does by
+    default; at any `appearance` but clean it sends its camera's whole frames, markers and
+    all, as a real cell's camera would, and the server registers them."""
     task = get_task(task_name)
     planner = RobotPlanner(session, robot_id, task_name)
 
@@ -189,8 +193,8 @@ def run_robot(
 
     try:
         size = encoder_image_size(session, task_name, timeout_s=5.0)
-        # the simulated robot's camera looks as the task's data does by default
-        with make_world(task_name, size, appearance=task_default(task_name)) as world:
+        looks = appearance or task_default(task_name)
+        with make_world(task_name, size, appearance=looks) as world:
             return run_episode(
                 planner,
                 world,
@@ -200,6 +204,7 @@ def run_robot(
                 max_steps=max_steps,
                 on_step=progress,
                 record=planner.report if report else None,
+                observer=Observer(world, register=False),
             )
     finally:
         planner.flush()

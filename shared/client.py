@@ -29,6 +29,8 @@ from shared.messages import (
     PathsRequest,
     ProposeReply,
     ProposeRequest,
+    RegisterReply,
+    RegisterRequest,
     RenderReply,
     RenderRequest,
     RunReply,
@@ -98,6 +100,18 @@ class PlanningClient:
         rendering = self._call("sim", "render", request, RenderReply, deadline or self.deadline())
         reply: RenderReply = rendering.result()
         return reply.images.numpy()
+
+    def register(
+        self, frames: np.ndarray, deadline: float | None = None
+    ) -> tuple[np.ndarray, list[str | None]]:
+        """`frames` (N, H, W, 3) in the table frame at the model's size, and why each that
+        could not be registered was not (None where it was)."""
+        request = RegisterRequest(task=self.task_name, images=WireArray.of(frames))
+        pending = self._call(
+            "encoder", "register", request, RegisterReply, deadline or self.deadline()
+        )
+        reply: RegisterReply = pending.result()
+        return reply.images.numpy(), reply.refused or [None] * len(frames)
 
     def _encode(
         self, images: list[np.ndarray], deadline: float

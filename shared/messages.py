@@ -88,6 +88,15 @@ class EncodeReply(Message):
     refused: list[str | None] | None = None
 
 
+class RegisterRequest(TaskMessage):
+    images: WireArray  # uint8 (N, H, W, 3): camera frames, as EncodeRequest's
+
+
+class RegisterReply(Message):
+    images: WireArray  # uint8 (N, S, S, 3): in the table frame at the model's size
+    refused: list[str | None] | None = None  # as EncodeReply's
+
+
 class DecodeRequest(TaskMessage):
     latents: WireArray  # float32 (N, D)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.cli.common import env_settings, json_arg, robot_id_arg
+from shared.appearance import LEVELS, levels_help
 from shared.tasks import get_task, task_names
 
 
@@ -28,6 +29,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
             args.max_steps,
             args.seed,
             report=args.report,
+            appearance=args.appearance,
         )
     finally:
         close_quietly(session)
@@ -51,6 +53,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="report every executed action as experience (the gateway records it where "
         "LSR_EXPERIENCE_DIR is set)",
+    )
+    robot.add_argument(
+        "--appearance",
+        choices=LEVELS,
+        help="how its camera sees (default: the task's); at any level but clean it sends "
+        f"whole camera frames, which the server registers to the table frame ({levels_help()})",
     )
     robot.add_argument("--connect", help="zenoh router endpoints (env LSR_ZENOH_CONNECT)")
     robot.set_defaults(handler=cmd_robot)

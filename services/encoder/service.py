@@ -17,6 +17,8 @@ from shared.messages import (
     DecodeRequest,
     EncodeReply,
     EncodeRequest,
+    RegisterReply,
+    RegisterRequest,
     WireArray,
     unpack,
 )
@@ -52,6 +54,15 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
             )
         ]
 
+    def register(payload: bytes) -> RegisterReply:
+        """Images in the table frame, for what is stored rather than encoded (experience)."""
+        request = unpack(payload, RegisterRequest)
+        check_task(request.task, task)
+        images, refused = to_table_frame(
+            registration, check_frames("images", request.images, MAX_BATCH)
+        )
+        return RegisterReply(images=WireArray.of(images), refused=refused if any(refused) else None)
+
     def decode(payload: bytes) -> DecodeReply:
         request = unpack(payload, DecodeRequest)
         check_task(request.task, task)
@@ -59,4 +70,8 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
         images = WireArray.of(decode_latents(vae, latents))
         return DecodeReply(images=images, model_id=context.model.model_id)
 
-    return {"encode": Batched(parse_encode, encode, max_batch=8), "decode": decode}
+    return {
+        "encode": Batched(parse_encode, encode, max_batch=8),
+        "decode": decode,
+        "register": register,
+    }

@@ -249,17 +249,19 @@ class Gateway:
     def record(
         self, request: ExperienceRequest, deadline: float | None = None
     ) -> ExperienceResponse:
-        """Append a robot's reported actions to the task's experience folder (images at the
-        model's size; no states: a robot does not know them)."""
+        """Append a robot's reported actions to the task's experience folder (images in the
+        table frame at the model's size, camera frames registered by the encoder first; no
+        states: a robot does not know them)."""
         task = self.served(request.task)
         if self.settings.experience_dir is None:
             raise ServiceUnavailable("experience", "not recorded here: LSR_EXPERIENCE_DIR is unset")
-        size = self.image_size(task, deadline or time.monotonic() + self.settings.deadline_s)
+        deadline = deadline or time.monotonic() + self.settings.deadline_s
+        size = self.image_size(task, deadline)
         logic = get_task(task)
         before, after, actions = [], [], []
         for i, row in enumerate(request.tuples):
-            before.append(decode_b64_image(f"tuples.{i}.before", row.before, size))
-            after.append(decode_b64_image(f"tuples.{i}.after", row.after, size))
+            before.append(self._table_frame(task, f"tuples.{i}.before", row.before, size, deadline))
+            after.append(self._table_frame(task, f"tuples.{i}.after", row.after, size, deadline))
             try:
                 action = None if row.action is None else logic.parse_action(row.action)
             except TaskError as exc:
@@ -275,6 +277,19 @@ class Gateway:
         except (OSError, DatasetError) as exc:  # unwritable, full, or a damaged manifest
             raise ServiceUnavailable("experience", f"not recordable in {folder}: {exc}") from exc
         return ExperienceResponse(recorded=len(actions), total=total)
+
+    def _table_frame(
+        self, task: str, field: str, text: str, size: int, deadline: float
+    ) -> np.ndarray:
+        """A reported image at the model's size; a camera frame registered by the encoder (a
+        FieldError naming `field` when its markers are not found)."""
+        image = decode_b64_image(field, text)
+        if image.shape[:2] == (size, size):
+            return image
+        (registered,), (why,) = self.client(task).register(image[None], deadline)
+        if why is not None:
+            raise FieldError(field, why)
+        return registered
 
     def execute(self, request: ExecuteRequest) -> ExecuteResponse:
         run = self.run_request(request)

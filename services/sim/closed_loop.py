@@ -118,22 +118,25 @@ def run_episode(
     max_plans: int = 8,
     on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
     record: Record | None = None,
+    observer: Any = None,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 
     `on_step(step, action, state, image)` is told of every executed action and the image
     recorded after it (progress for robots; a camera-like world draws each image once).
-    `record` gets every executed action as experience (the image planned from, the action,
-    the image after), a refused one and each fresh look at an unchanged scene as no-action
-    pairs. A refused action ends the episode, since re-planning from the unchanged scene would
-    repeat it, unless the planner's `last_was_shortcut` says the plan was a one-off try
-    (TryShortcuts), which it will not give again. A step whose action led elsewhere (the next
-    plan does not start at the node it was meant to reach) is given to every later plan of
-    the task as a step to avoid.
+    `observer` is how the world's images reach the planner (services.sim.workcell.Observer;
+    by default registered here). `record` gets every executed action as experience (the
+    image planned from, the action, the image after), a refused one and each fresh look at an
+    unchanged scene as no-action pairs. A refused action ends the episode, since re-planning
+    from the unchanged scene would repeat it, unless the planner's `last_was_shortcut` says
+    the plan was a one-off try (TryShortcuts), which it will not give again. A step whose
+    action led elsewhere (the next plan does not start at the node it was meant to reach) is
+    given to every later plan of the task as a step to avoid.
     """
     from services.sim.workcell import Observer
 
-    observer = Observer(world)  # every image registered to the table frame, as a cell's are
+    # every image registered to the table frame, as a cell's are (here, or by the server)
+    observer = observer or Observer(world)
     try:
         if goal_image is None:
             if goal is None:

@@ -227,16 +227,18 @@ class Observer:
     """What a model is given of what a world shows: at `clean`, or for a task without
     markers, the canonical render (the camera sits at the nominal pose, which registering its
     frame would only approximate); at other levels, the cell's frame registered to the table
-    frame. `see()` raises RegistrationError when the frame's markers are not found."""
+    frame. `see()` raises RegistrationError when the frame's markers are not found.
+    `register` False gives the cell camera's frames as they are, at every level, for a
+    client whose server registers them (a robot over the public API)."""
 
-    def __init__(self, world: World) -> None:
+    def __init__(self, world: World, register: bool = True) -> None:
         self.world = world
+        self.register = register
         workcell = world.task.workcell
         appearance = getattr(world, "appearance", None)  # an AppearanceWorld's level
         self.registration = None if workcell is None else Registration(workcell, world.image_size)
-        self.frames = self.registration is not None and not (
-            appearance is None or appearance.is_clean
-        )
+        clean = appearance is None or appearance.is_clean
+        self.frames = self.registration is not None and (not clean or not register)
 
     def see(self) -> np.ndarray:
         image, why = self.look()
@@ -249,6 +251,8 @@ class Observer:
         found, the frame only resized (to show, never to plan from) and why."""
         if not self.frames:
             return self.world.render(), None
+        if not self.register:
+            return self.world.frame(), None
         assert self.registration is not None
         image, (why,) = to_table_frame(self.registration, [self.world.frame()])
         return image[0], why
@@ -257,6 +261,6 @@ class Observer:
         """An image given from outside (a goal): at the model's size as it is, else a frame
         registered (RegistrationError when it cannot be)."""
         size = self.world.image_size
-        if image.shape[:2] == (size, size) or self.registration is None:
+        if image.shape[:2] == (size, size) or self.registration is None or not self.register:
             return image
         return self.registration.register(image).image

@@ -314,6 +314,17 @@ def test_a_frame_whose_markers_are_covered_is_not_known_and_the_reason_says_so(h
     assert "missing ids" in result["reason"]
 
 
+def test_reported_frames_are_registered_and_one_without_markers_is_refused_by_field(http):
+    shown = frame(http, CLOTH_START, seed=4, task="cloth_folding")  # box: the robot's folder
+    row = {"before": shown, "action": None, "after": shown}
+    reply = http.post("/experience", json={"task": "cloth_folding", "tuples": [row]})
+    assert reply.status_code == 200, reply.text
+    row["after"] = covered(shown, slice(0, 80))  # two of the four markers
+    reply = http.post("/experience", json={"task": "cloth_folding", "tuples": [row]})
+    assert reply.status_code == 422 and "tuples.0.after" in reply.text
+    assert "table markers were not found" in reply.text
+
+
 def test_execute_reaches_a_goal_given_as_a_camera_frame(http):
     body = {**GOOD, "goal": {"image": frame(http, GOAL, seed=8)}, "seed": 2}
     reply = http.post("/execute", json=body)
@@ -452,6 +463,7 @@ def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
     recorded = load_dataset(Path(stack.config.env["LSR_EXPERIENCE_DIR"]) / "box_stacking")
     assert int(recorded.a.sum()) == steps >= 5
     assert f"[r2] {len(recorded)} experience tuples recorded" in result.stdout
+    assert recorded.image1.shape[1:] == (64, 64, 3)  # its 320 px frames, registered
     state = TASK.parse_state(START)
     for u in recorded.u[recorded.a == 1]:
         state = TASK.apply(state, TASK.array_to_action(u))  # the actions as executed, in order
