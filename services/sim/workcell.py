@@ -10,7 +10,7 @@ the canonical view is its middle.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -19,8 +19,8 @@ from shared.registration import Registration, RegistrationError, to_table_frame
 from shared.tasks.base import World
 from shared.workcell import Marker, Workcell, marker_cells
 
-FRAME_SCALE = 1.8  # the frame's field of view over the canonical one (tangent of the half-angle)
-FRAME_SIZE = 320  # pixels: 0.69 frame pixels per canonical pixel at 256
+FRAME_SCALE = 2.2  # the frame's field of view over the canonical one (tangent of the half-angle)
+FRAME_SIZE = 400  # pixels: 0.71 frame pixels per canonical pixel at 256
 WHITE = "0.93 0.93 0.93 1"
 BLACK = "0.03 0.03 0.03 1"
 BASE_M = 0.0006  # the printed sheet's thickness on the table
@@ -191,18 +191,40 @@ PLACES: dict[str, list[tuple[int, tuple[float, float], float]]] = {
 
 
 def layout(world: World) -> Workcell:
-    """The task's workcell designed from its world's canonical camera, with the levels its
-    markers' cells take in a clean frame (that frame rendered with the markers in place)."""
+    """The task's workcell designed from its world's canonical camera, calibrated on a clean
+    frame at the nominal pose (rendered with the markers in place), as a cell is calibrated
+    once: the corners where the detector finds them, taken to the canonical frame through the
+    nominal camera, so that the detector's own bias (its corners lie about half a frame pixel
+    inside the printed ones) cancels rather than tilting every homography; and the levels the
+    markers' cells take."""
     name = world.task.name
     camera = world.camera.camera
-    markers = design(Pinhole.of(world.model, world.data, camera), PLACES[name])
-    drafted = Workcell(markers=markers)
+    designed = design(Pinhole.of(world.model, world.data, camera), PLACES[name])
+    drafted = Workcell(markers=designed)
     scene = type(world)(world.task.with_workcell(drafted), image_size=world.image_size)
     try:
         scene.reset(scene.task.all_states()[0], np.random.default_rng(0))
-        black, white = Registration(drafted, world.image_size).measure_levels(scene.frame())
+        frame = scene.frame()
     finally:
         scene.close()
+    found = Registration(drafted, world.image_size).detect(frame)
+    missing = [m.id for m in designed if m.id not in found]
+    if missing:
+        raise ValueError(f"{name}: markers {missing} not found in the clean frame")
+    size = frame.shape[0]
+    scale = drafted.frame * FRAME_SCALE / size  # canonical pixels per frame pixel, nominally
+    markers = tuple(
+        replace(
+            m,
+            corners=tuple(
+                (round(float(x), 3), round(float(y), 3))
+                for x, y in (found[m.id] + 0.5 - size / 2) * scale + drafted.frame / 2 - 0.5
+            ),
+        )
+        for m in designed
+    )
+    calibrated = Workcell(markers=markers)
+    black, white = Registration(calibrated, world.image_size).measure_levels(frame)
     return Workcell(
         markers=markers,
         min_markers=MIN_MARKERS.get(name, 3),

@@ -16,7 +16,7 @@ TASKS = ("box_stacking", "cloth_folding", "tshirt_folding")
 # Largest error (canonical pixels at 256) over the view between the estimated and the true
 # homography at `camera`, as measured by benchmarks/bench_registration.py: box stacking's
 # markers lie low in an oblique view, so its far edge is extrapolated.
-TRUTH_BOUND = {"box_stacking": 6.0, "cloth_folding": 1.5, "tshirt_folding": 1.5}
+TRUTH_BOUND = {"box_stacking": 5.0, "cloth_folding": 1.0, "tshirt_folding": 1.0}
 VIEW = np.stack(np.meshgrid(np.linspace(0, 255, 9), np.linspace(0, 255, 9)), -1).reshape(-1, 2)
 
 
