@@ -24,8 +24,9 @@ def percentiles(seconds: list[float]) -> dict[str, float]:
     }
 
 
-def request_bodies(pairs: int, size: int, seed: int) -> list[dict]:
-    """Image-to-image box-stacking /plan bodies between random states, 8 plans at most."""
+def request_bodies(pairs: int, size: int, seed: int, frames: bool = False) -> list[dict]:
+    """Image-to-image box-stacking /plan bodies between random states, 8 plans at most;
+    `frames`: the cell camera's whole frames (registered by the encoder), not the views."""
     task = get_task("box_stacking")
     rng = np.random.default_rng(seed)
     bodies = []
@@ -34,7 +35,7 @@ def request_bodies(pairs: int, size: int, seed: int) -> list[dict]:
             images = []
             for state in (task.sample_state(rng), task.sample_state(rng)):
                 world.reset(state, rng)
-                images.append(png_b64(world.render()))
+                images.append(png_b64(world.frame() if frames else world.render()))
             bodies.append(
                 {
                     "task": "box_stacking",

@@ -1,0 +1,104 @@
+"""What registration costs a /plan: camera frames against table-frame images, side by side.
+
+Starts the stack (`lsr up`'s launcher) with the shipped model and sends image-to-image /plan
+requests at concurrency 1 between the same random states, once as the views at the model's
+size (taken as in the table frame already) and once as the cell camera's whole frames (400 px
+PNG, registered to the table frame by the encoder), in alternating rounds, since this shared
+VM drifts from run to run. Prints p50 / p99 of each, the encoder's handler time (which holds
+the registration), the request sizes, and registration alone per frame in one process.
+
+    .venv/bin/python benchmarks/bench_plan_frames.py [--rounds 6] [--per-round 100] [--pairs 50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_plan_latency import through_stack  # noqa: E402
+from plan_requests import request_bodies  # noqa: E402
+
+from services.stack import Stack, StackConfig, free_port  # noqa: E402
+from shared.images import decode_image  # noqa: E402
+from shared.registration import Registration  # noqa: E402
+from shared.tasks import get_task  # noqa: E402
+
+
+def registration_alone(bodies: list[dict], size: int) -> dict[str, float]:
+    """Decoding and registering one frame, in one process (ms)."""
+    registration = Registration(get_task("box_stacking").workcell, size)
+    frames = [
+        decode_image(base64.b64decode(b[end]["image"])) for b in bodies for end in ("start", "goal")
+    ]
+    times = []
+    for frame in frames * 3:
+        started = time.perf_counter()
+        registration.register(frame)
+        times.append((time.perf_counter() - started) * 1e3)
+    return {
+        "p50_ms": round(float(np.median(times)), 2),
+        "p99_ms": round(float(np.percentile(times, 99)), 2),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, default=ROOT / "models" / "box_stacking")
+    parser.add_argument("--rounds", type=int, default=6)
+    parser.add_argument("--per-round", type=int, default=100)
+    parser.add_argument("--pairs", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    kinds = {
+        "views (64 px)": request_bodies(args.pairs, 64, args.seed),
+        "frames (400 px)": request_bodies(args.pairs, 64, args.seed, frames=True),
+    }
+    sizes = {k: int(np.median([len(b["start"]["image"]) for b in v])) for k, v in kinds.items()}
+    print("registration alone:", json.dumps(registration_alone(kinds["frames (400 px)"], 64)))
+    runs: dict[str, list[dict]] = {kind: [] for kind in kinds}
+    with tempfile.TemporaryDirectory() as logs:
+        config = StackConfig(
+            port=free_port(), zenoh_port=free_port(), models=(args.model,), log_dir=Path(logs)
+        )
+        with Stack(config) as stack:
+            stack.start()
+            stack.wait_healthy(90)
+            for _ in range(args.rounds):
+                for kind, bodies in kinds.items():
+                    runs[kind].append(through_stack(config.url, bodies, args.per_round, 1))
+    print(
+        f"model {args.model}, {args.rounds} rounds of {args.per_round} requests each, concurrency 1"
+    )
+    print(
+        "| images | base64 bytes (p50) | errors | /plan p50 / p99 (ms) | encode handler p50 (ms) |"
+    )
+    print("| --- | --- | --- | --- | --- |")
+    summary = {}
+    for kind, rounds in runs.items():
+        p50 = float(np.median([r["p50_ms"] for r in rounds]))
+        p99 = float(np.median([r["p99_ms"] for r in rounds]))
+        handler = float(np.median([r["p50_breakdown_ms"]["encode-handler"] for r in rounds]))
+        errors = sum(r["errors"] for r in rounds)
+        summary[kind] = {
+            "p50_ms": p50,
+            "p99_ms": p99,
+            "encode_handler_ms": handler,
+            "errors": errors,
+        }
+        print(f"| {kind} | {sizes[kind]} | {errors} | {p50:.1f} / {p99:.1f} | {handler:.1f} |")
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()
