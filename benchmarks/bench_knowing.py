@@ -14,6 +14,14 @@ the edge, half the frame covered, under- and over-exposure), taken from other ta
 from modified scenes: a box missing, a fifth box of a new colour, a second red box. Prints one
 markdown table (kind, images, known or refused share, lowest and median score) and writes every
 score to the JSON file, from which `--figure` draws.
+
+With `--frames N` (a task with markers), the same transforms are also applied to N cell camera
+frames of random states (at the model's training look) before they are registered to the table
+frame, as a camera would give them: a frame whose markers are not found is refused before the
+model (score REFUSED), and for every frame the model knows it says whether its nearest roadmap
+node stands for the frame's true state (a camera turned upside down registers back upright).
+    .venv/bin/python benchmarks/bench_knowing.py --model models/box_stacking \
+        --test data/box_camera/test_camera --frames 300 --json runs/knowing/box_frames.json
 """
 
 from __future__ import annotations
@@ -149,6 +157,34 @@ def foreign_kinds(
     return kinds
 
 
+REFUSED = 1e9  # the score of a frame whose markers were not found (no model saw it)
+
+
+def frame_kinds(
+    task: str, size: int, look: str, count: int, rng: np.random.Generator
+) -> tuple[dict[str, tuple[np.ndarray, list[str | None]]], np.ndarray]:
+    """Each transform applied to `count` cell frames of random states, then registered: per
+    kind, the images the model is given and why a frame was refused; and the true states."""
+    from services.sim.worlds import make_world
+    from shared.registration import Registration, to_table_frame
+    from shared.tasks import get_task
+
+    logic = get_task(task)
+    registration = Registration(logic.workcell, size)
+    frames, states = [], []
+    with make_world(task, size, appearance=look) as world:
+        for _ in range(count):
+            state = logic.sample_state(rng)
+            world.reset(state, rng)
+            frames.append(world.frame())
+            states.append(logic.state_to_array(state))
+    frames_array = np.stack(frames)
+    kinds = {"frame as it is": to_table_frame(registration, frames_array)}
+    for name, transform in TRANSFORMS.items():
+        kinds[f"frame, {name}"] = to_table_frame(registration, transform(frames_array, rng))
+    return kinds, np.stack(states)
+
+
 def scores(planner: VisualPlanner, images: np.ndarray) -> np.ndarray:
     """(N, 3): each term over its threshold (distance, whole image, worst patch)."""
     assert planner.calibration is not None
@@ -175,6 +211,25 @@ def run(args: argparse.Namespace) -> dict:
     }
     for name, images in foreign_kinds(task, test, args.foreign, args.per_kind, rng).items():
         result["kinds"][name] = scores(planner, images).tolist()
+    if args.frames:
+        look = vae_config["dataset"].get("appearance", "clean")
+        kinds, states = frame_kinds(task, test.shape[1], look, args.frames, rng)
+        labels = load_model(args.model)[3]
+        result["frames"] = {}
+        for name, (images, refused) in kinds.items():
+            terms = scores(planner, images)
+            terms[[why is not None for why in refused]] = REFUSED
+            z, _ = planner.look(images)
+            nodes = np.asarray(planner.roadmap.nearest_node(z))
+            known = terms.max(1) <= 1
+            right = (labels.states[nodes] == states).reshape(len(states), -1).all(1)
+            result["kinds"][name] = terms.tolist()
+            result["frames"][name] = {
+                "registered": 100.0 * float(np.mean([why is None for why in refused])),
+                "known": 100.0 * float(known.mean()),
+                "known_at_the_right_node": 100.0
+                * float((known & right).sum() / max(1, known.sum())),
+            }
     result["seconds"] = time.perf_counter() - started
     return result
 
@@ -233,6 +288,7 @@ def main() -> None:
     parser.add_argument("--test", type=Path)
     parser.add_argument("--foreign", type=Path, nargs="*", default=[])
     parser.add_argument("--per-kind", type=int, default=500)
+    parser.add_argument("--frames", type=int, default=0, help="cell frames per transform")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path)
     parser.add_argument("--figure", type=Path, help="draw from the JSON files given after it")
@@ -246,6 +302,13 @@ def main() -> None:
         parser.error("--model and --test are needed (or --figure with JSON files)")
     result = run(args)
     print(table(result))
+    if result.get("frames"):
+        print(
+            "\n| frames | registered | known | known at the right node |\n| --- | --- | --- | --- |"
+        )
+        for name, row in result["frames"].items():
+            print(f"| {name} | {row['registered']:.1f}% | {row['known']:.1f}% | "
+                  f"{row['known_at_the_right_node']:.1f}% |")  # fmt: skip
     print(f"\n{result['seconds']:.0f} s")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
