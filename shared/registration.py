@@ -30,11 +30,12 @@ class RegistrationError(ValueError):
 
 @dataclass(frozen=True)
 class Bounds:
-    """What a plausible homography looks like. The defaults lie above what `camera` frames
-    gave (corner RMS up to 1.3 px, the view moved up to 16 px; benchmarks/bench_registration.py)
-    with room for `shifted`, which doubles every camera range."""
+    """What a plausible homography looks like: the defaults lie above what `shifted` frames,
+    which double every camera range, gave (250 random states a task: corner RMS at most 1.83
+    px for box stacking, 0.85 for cloth; the view moved at most 39.5 px; `camera`: 1.54 and
+    19.5), far below what a marker moved on the table or a frame turned round gives."""
 
-    max_error_px: float = 1.5  # RMS reprojection error of the corners, canonical pixels
+    max_error_px: float = 2.5  # RMS reprojection error of the corners, canonical pixels
     max_offset_px: float = 60.0  # how far the view's corners may lie from where they should
     min_contrast: float = 40.0  # white minus black of the markers' cells, levels of 255
 
