@@ -106,7 +106,9 @@ def geometry(task: str, states: int, seed: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def factors(task: str, states: int, seed: int) -> dict[str, dict[str, float]]:
+def factors(
+    task: str, states: int, seed: int, model: Path | None = None
+) -> dict[str, dict[str, float]]:
     """Per factor of the camera look: latent L1 to the clean render and share known, with the
     task's shipped model, without and with registration."""
     from services.encoder.checkpoint import load_vae
@@ -114,7 +116,7 @@ def factors(task: str, states: int, seed: int) -> dict[str, dict[str, float]]:
     from services.planner.roadmap import Roadmap
     from services.planner.versions import roadmap_dir
 
-    model = Path("models") / task
+    model = model or Path("models") / task
     vae, _ = load_vae(model / "vae")
     folder = roadmap_dir(model)
     roadmap = Roadmap.load(folder)
@@ -155,6 +157,7 @@ def main() -> int:
     parser.add_argument("--states", type=int, default=100)
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--no-factors", action="store_true", help="skip the model part")
+    parser.add_argument("--model", type=Path, help="for one task: another model than models/T")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     results: dict[str, dict] = {}
@@ -175,7 +178,8 @@ def main() -> int:
         for task in args.tasks:
             if not (Path("models") / task / "vae").is_dir():
                 continue
-            results[task]["factors"] = factors(task, args.states, args.seed)
+            model = args.model if args.model and len(args.tasks) == 1 else None
+            results[task]["factors"] = factors(task, args.states, args.seed, model)
             for name, r in results[task]["factors"].items():
                 print(
                     f"| {task} | {name} | {r['before_l1']:.2f} -> {r['after_l1']:.2f} | "
