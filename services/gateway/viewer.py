@@ -33,6 +33,7 @@ from pydantic import BaseModel, Field
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import shortest_path
 
+from services.gateway.errors import error_body
 from services.gateway.planning import Gateway
 from services.gateway.schemas import ExecuteRequest, TaskRequest
 from shared.bus import call, progress_key
@@ -232,8 +233,6 @@ class Viewer:
         return self._episode(body, self.gateway.run_request(body, run_id), run_id)
 
     def _episode(self, body: ExecuteRequest, run: RunRequest, run_id: str) -> Iterator[str]:
-        from services.gateway.app import error_body  # app imports this module
-
         events: queue.Queue[tuple[str, Any]] = queue.Queue()
 
         def heard(sample: zenoh.Sample) -> None:
