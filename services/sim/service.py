@@ -18,6 +18,7 @@ from services.runtime import ServiceContext
 from services.sim.appearance import AppearanceWorld
 from services.sim.closed_loop import run_episode
 from services.sim.settled import FOLDER, default_folders, ensure_complete
+from services.sim.workcell import Observer
 from services.sim.worlds import make_world, world_class
 from shared.bus import MSGPACK, Handler, progress_key
 from shared.client import PlanningClient
@@ -87,10 +88,11 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         appearance = check_appearance(request.appearance, trained)
         rng = np.random.default_rng(request.seed)
         render_world = world("render", appearance)
+        observer = Observer(render_world)  # the view as the model is given it: registered
         images = []
         for state in states:
             render_world.reset(state, rng)
-            images.append(render_world.frame() if request.frame else render_world.render())
+            images.append(render_world.frame() if request.frame else observer.look()[0])
         return RenderReply(images=WireArray.of(np.stack(images)))
 
     def run(payload: bytes) -> RunReply:
