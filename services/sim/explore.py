@@ -26,6 +26,7 @@ from services.planner.action_plans import ActionPlanner
 from services.planner.grow import grow, grow_model, load_members, state_labels
 from services.planner.members import Members
 from services.planner.roadmap import Roadmap, pair_distances
+from services.sim.workcell import Observer
 from services.sim.worlds import has_world, make_world
 from shared.appearance import trained_appearance
 from shared.tasks.base import IllegalActionError, Task, WorldError
@@ -150,6 +151,7 @@ def explore(
     bar.set_postfix(shape)
     appearance = trained_appearance(config)
     with make_world(task.name, size, appearance=appearance) as world:
+        observer = Observer(world)  # images as the model is given them: registered
         while tried < cfg.actions:
             startable = thinness(roadmap) * np.array([s is not None for s in node_states])
             if not startable.sum():
@@ -159,7 +161,9 @@ def explore(
             for _ in range(cfg.chain):
                 if tried >= cfg.actions:
                     break
-                image = world.render()
+                image, why = observer.look()
+                if why is not None:  # its markers were not found: start elsewhere
+                    break
                 z = planner.encode(image)
                 here = int(roadmap.nearest_node(z))
                 draw = rng.random()
@@ -189,14 +193,18 @@ def explore(
                     action, after_state = None, state
                 except WorldError:  # a wrecked scene: start elsewhere
                     break
-                after = world.render()
+                after, why = observer.look()
+                if why is not None:
+                    break
                 if action is not None or not np.array_equal(after, image):
                     # (an identical look after a refusal shows nothing new: not recorded)
                     rows.append((image, action, after, state, after_state))
                     record(*rows[-1])
                 for _ in range(cfg.looks if action is not None else 0):
                     after_state = world.perturb(rng)
-                    again = world.render()
+                    again, why = observer.look()
+                    if why is not None:
+                        break
                     rows.append((after, None, again, after_state, after_state))
                     record(*rows[-1])
                     after = again
