@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from services.sim.appearance import AppearanceWorld
-from services.sim.workcell import Pinhole, layout, true_homography
+from services.sim.workcell import Observer, Pinhole, layout, true_homography
 from services.sim.worlds import make_world
-from shared.registration import Registration, RegistrationError, _apply
+from shared.registration import Registration, RegistrationError, _apply, to_table_frame
 from shared.tasks import get_task
 from shared.workcell import Workcell, markers_svg
 
@@ -165,3 +165,34 @@ def test_tasks_report_their_markers():
     assert info["markers"]["dictionary"] == "DICT_4X4_50"
     assert info["markers"]["ids"] == [0, 1, 2, 3]
     assert len(info["markers"]["markers"][0]["corners"]) == 4
+
+
+def test_to_table_frame_passes_views_registers_frames_and_keeps_why_one_failed(box_frame):
+    frame, canonical = box_frame
+    registration = Registration(get_task("box_stacking").workcell, 64)
+    images, why = to_table_frame(registration, [canonical, frame, frame[:300, :300].copy()])
+    assert np.array_equal(images[0], canonical) and why[0] is None  # at the model's size
+    assert np.array_equal(images[1], registration.register(frame).image) and why[1] is None
+    assert why[2].startswith("the table markers were not found")  # shown, never planned from
+    assert images[2].shape == (64, 64, 3)
+
+
+def test_a_moved_marker_gives_an_implausible_homography(box_frame):
+    frame, _ = box_frame
+    registration = Registration(get_task("box_stacking").workcell, 64)
+    quad = registration.detect(frame)[2]
+    (x0, y0), (x1, y1) = quad.min(0).astype(int) - 4, quad.max(0).astype(int) + 4
+    moved = frame.copy()
+    moved[y0:y1, x0 + 12 : x1 + 12] = frame[y0:y1, x0:x1]  # marker 2 slid 12 px on the table
+    with pytest.raises(RegistrationError, match="implausible homography: corner error"):
+        registration.register(moved)
+
+
+@pytest.mark.parametrize(("appearance", "register"), [("clean", True), ("camera", True),
+                                                      ("clean", False)])  # fmt: skip
+def test_an_observer_gives_what_a_model_is_given(appearance, register):
+    with make_world("box_stacking", 64, appearance=appearance) as world:
+        world.reset(world.task.all_states()[5], np.random.default_rng(2))
+        image = Observer(world, register=register).see()
+    # views at the model's size; a client that leaves registration to its server sends frames
+    assert image.shape == ((64, 64, 3) if register else (400, 400, 3))
