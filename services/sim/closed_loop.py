@@ -15,6 +15,7 @@ import numpy as np
 
 from services.data.experience import Record, Recorder
 from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
+from services.sim.workcell import Observer
 from shared.messages import MAX_AVOID
 from shared.plans import UnknownImageError, VisualActionPlan, most_confident
 from shared.registration import RegistrationError
@@ -118,7 +119,7 @@ def run_episode(
     max_plans: int = 8,
     on_step: Callable[[int, Any, Any, np.ndarray], None] | None = None,
     record: Record | None = None,
-    observer: Any = None,
+    observer: Observer | None = None,
 ) -> Episode:
     """Start from a fresh render of `start`; `goal` as a state, or only as `goal_image`.
 
@@ -133,8 +134,6 @@ def run_episode(
     action led elsewhere (the next plan does not start at the node it was meant to reach) is
     given to every later plan of the task as a step to avoid.
     """
-    from services.sim.workcell import Observer
-
     # every image registered to the table frame, as a cell's are (here, or by the server)
     observer = observer or Observer(world)
     try:
