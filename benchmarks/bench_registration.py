@@ -12,10 +12,12 @@ each an episode of its own look, renders the cell's camera frame and registers i
   where the estimated homography and the true one (from the drawn camera pose) send a frame
   point, in pixels of the canonical 256 frame; corner error: detected marker corners against
   their true places in the frame, frame pixels;
-- with the task's shipped model (`models/<task>`), per factor of the `camera` look (camera
-  pose, lights, table, image pipeline, all of them): the L1 latent distance of the image to
-  the clean render of the same physical state and the share of images the model knows,
-  without registration (the moved camera's own view at the model's size) and with it.
+- with the task's shipped model (`models/<task>`, or `--model`), per factor of the `camera`
+  look (camera pose, lights, table, image pipeline, all of them): the L1 latent distance of
+  the image to the clean render of the same physical state and the share of images the model
+  knows,
+  without registration (the moved camera's own view at the model's size) and with it, and
+  with the warp alone (no colour step from the markers' cells), to see what that step does.
 Prints markdown tables; `--json` keeps every figure.
 """
 
@@ -126,22 +128,26 @@ def factors(
         world = make_world(task, 64)
         looked = AppearanceWorld(world, appearance)
         registration = Registration(world.task.workcell, 64)
+        geometric = Registration(world.task.workcell, 64, photometric=False)
         rng = np.random.default_rng([seed, 99])
-        clean, before, after = [], [], []
+        clean, before, after, warped = [], [], [], []
         refused = 0
         for _ in tqdm(range(states), desc=f"{task} {name}", leave=False):
             looked.reset(world.task.sample_state(rng), rng)
             clean.append(world.render())
             before.append(looked.render())
+            frame = looked.frame()
             try:
-                after.append(registration.register(looked.frame()).image)
+                after.append(registration.register(frame).image)
+                warped.append(geometric.register(frame).image)
             except RegistrationError:
                 refused += 1
                 after.append(np.zeros_like(clean[-1]))
+                warped.append(after[-1])
         world.close()
         z_clean, _ = knowing.look(vae, np.stack(clean))
         row: dict[str, float] = {"unregistered_frames": refused}
-        for label, images in (("before", before), ("after", after)):
+        for label, images in (("before", before), ("after", after), ("geometric", warped)):
             z, errors = knowing.look(vae, np.stack(images))
             matches = knowing.match(roadmap, calibration, z, errors)
             row[f"{label}_l1"] = float(np.median(np.abs(z - z_clean).sum(1)))
@@ -172,8 +178,8 @@ def main() -> int:
                   f"{r['homography_max_px']:.2f} | {r['corner_p50_px']:.2f} / "
                   f"{r['corner_max_px']:.2f} | {r['register_ms_p50']:.1f} |")  # fmt: skip
     if not args.no_factors:
-        print("\n| task | factor | L1 to clean: unregistered -> registered | known: unregistered "
-              "-> registered |")  # fmt: skip
+        print("\n| task | factor | L1 to clean: unregistered -> registered (warp only) | known: "
+              "unregistered -> registered (warp only) |")  # fmt: skip
         print("| --- | --- | --- | --- |")
         for task in args.tasks:
             if not (Path("models") / task / "vae").is_dir():
@@ -182,8 +188,9 @@ def main() -> int:
             results[task]["factors"] = factors(task, args.states, args.seed, model)
             for name, r in results[task]["factors"].items():
                 print(
-                    f"| {task} | {name} | {r['before_l1']:.2f} -> {r['after_l1']:.2f} | "
-                    f"{100 * r['before_known']:.1f}% -> {100 * r['after_known']:.1f}% |"
+                    f"| {task} | {name} | {r['before_l1']:.2f} -> {r['after_l1']:.2f} "
+                    f"({r['geometric_l1']:.2f}) | {100 * r['before_known']:.1f}% -> "
+                    f"{100 * r['after_known']:.1f}% ({100 * r['geometric_known']:.1f}%) |"
                 )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
