@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 export MUJOCO_GL ?= egl
 
-.PHONY: install browser up test lint bench mesh clean
+.PHONY: install browser up test docs lint bench mesh clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -27,9 +27,18 @@ browser:
 up: $(STAMP)
 	$(BIN)/lsr up
 
+# The docs site is built strictly first: a broken link, a missing page or anchor fails CI
+# (not --quiet: it hides the warnings that --strict counts).
+# pytest then runs everything else, the examples (tests/services/test_examples.py) and the
+# import-cycle check (tests/test_imports.py) among them.
 test: $(STAMP) browser
 	$(BIN)/ruff check .
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 	$(BIN)/pytest -q
+
+# The documentation site from docs/ (MkDocs Material) into build/site/.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

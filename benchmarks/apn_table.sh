@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # APN rows of models/box_stacking/REPORT.md: one APN per VAE trained by benchmarks/table1.sh,
 # both output heads for VAE-L1, each evaluated on the unseen test set's action pairs.
+# Usage: benchmarks/apn_table.sh [none l1 l2 inf]   (after benchmarks/table1.sh made the VAEs)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 LSR=.venv/bin/lsr

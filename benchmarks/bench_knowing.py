@@ -5,7 +5,8 @@ Usage:
     .venv/bin/python benchmarks/bench_knowing.py --model models/box_stacking \
         --test data/box_stacking/test --foreign data/cloth_folding/test \
         [--per-kind 500] [--seed 0] [--json runs/knowing/box_stacking.json]
-    .venv/bin/python benchmarks/bench_knowing.py --figure docs/knowing.png runs/knowing/*.json
+    .venv/bin/python benchmarks/bench_knowing.py --figure docs/images/knowing_scores.png \
+        runs/knowing/*.json
 
 Foreign kinds are made from the model's own test images (uniform noise, solid frames, colour
 inversion, rotation by 180 degrees, a shift by a third of the frame rolled round or padded with
