@@ -99,6 +99,20 @@ def test_robot_zenoh_takes_its_plan_from_its_own_key(stack):
     assert_leads_from_start_to_goal(actions)
 
 
+@pytest.mark.parametrize("page", ["README.md", "docs/serving/rest.md", "docs/serving/zenoh.md"])
+def test_the_python_snippets_of_the_front_page_and_the_docs_run_as_shown(stack, page):
+    snippets = re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)
+    assert snippets
+    for code in snippets:  # as written, but against this stack's ports
+        code = code.replace("127.0.0.1:8000", f"127.0.0.1:{stack.config.port}")
+        code = code.replace("tcp/127.0.0.1:7447", stack.config.endpoint)
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT
+        )
+        assert done.returncode == 0, f"{page}:\n{code}\n{done.stderr}"
+        assert '"pick"' in done.stdout or "'pick'" in done.stdout  # it printed an action
+
+
 def recording(folder: Path, episodes: int = 5, frames: int = 4) -> int:
     """A robot's recording: frames of 80 px (the import resizes) and a log; tuples made."""
     rng = np.random.default_rng(0)
