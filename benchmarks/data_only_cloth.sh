@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The real check of tasks defined by their data (README, "Your own robot data"): export the
+# The real check of tasks defined by their data (docs/own-data.md, "The real check"): export the
 # cloth-folding simulator's dataset as PNG + JSONL (states dropped), import it as a task named
 # cloth_recorded with the cloth model's settings in its task.json (d_m 13.5, w_eps 0.8, regions
 # under 6 pruned), train it with the shipped cloth model's budget (models/cloth_folding/REPORT.md:
