@@ -21,15 +21,16 @@ class VisualActionPlan:
     @property
     def confidence(self) -> float:
         """The product of the actions' confidences (1 without actions): the APN's view only;
-        the README's reliability table shows it says nothing of the nodes."""
+        the reliability table in docs/serving/knowing.md shows it says nothing of the nodes."""
         return float(np.prod(self.confidences)) if self.confidences else 1.0
 
     @property
     def support(self) -> float:
         """How well the training data backs every step: the product over steps of (w + 1) /
         (w + 2), Laplace's rule of succession for a step seen w times and never seen to fail;
-        so it falls with the plan's length and rises with each step's evidence (README,
-        'Plan confidence', for how often plans at each support are valid)."""
+        so it falls with the plan's length and rises with each step's evidence
+        (docs/serving/knowing.md, 'Plan confidence', for how often plans at each support are
+        valid)."""
         return float(np.prod([(w + 1) / (w + 2) for w in self.supports]))
 
     def to_json(self, task: Task) -> dict[str, Any]:

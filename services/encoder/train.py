@@ -32,7 +32,8 @@ PAPER_DM = {
 
 # Optimiser steps of the default schedule. Steps, not epochs: a small dataset needs as many
 # updates as a large one to shape its latent space (1000 tuples trained 30 epochs = 480 steps
-# left 23 impure nodes; the shipped box model had 2370). See README "Data efficiency".
+# left 23 impure nodes; the shipped box model had 2370). See docs/tasks/box-stacking.md, "Data
+# efficiency".
 DEFAULT_STEPS = 2400
 
 

@@ -114,13 +114,14 @@ class Plan(BaseModel):
     confidences: list[float] = Field(description="the APN's confidence in each action")
     confidence: float = Field(
         description="the product of the actions' confidences: how sure the APN is of the "
-        "actions, not whether the nodes show the right states (README, 'Plan confidence')"
+        "actions, not whether the nodes show the right states (docs/serving/knowing.md, "
+        "'Plan confidence')"
     )
     supports: list[int] = Field(description="the training action pairs behind each step")
     support: float = Field(
         description="how well the training data backs every step: the product over steps of "
-        "(w + 1) / (w + 2) for a step seen w times; README 'Plan confidence' says how often "
-        "plans at each support were valid"
+        "(w + 1) / (w + 2) for a step seen w times; docs/serving/knowing.md, 'Plan "
+        "confidence', says how often plans at each support were valid"
     )
 
 

@@ -145,7 +145,7 @@ class TshirtFolding(FoldingTask):
 
     def hidden(self, state: Folds) -> frozenset[str]:
         """With the bottom half folded, a folded side's sleeve lies under it, inside the flap or
-        on it: a camera from above sees neither (README, "The T-shirt world")."""
+        on it: a camera from above sees neither (docs/tasks/tshirt-folding.md)."""
         if "bottom_half" not in state:
             return frozenset()
         return frozenset(sleeve for sleeve, side in SIDE_OF.items() if side in state)
