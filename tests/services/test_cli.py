@@ -94,7 +94,7 @@ def test_eval_system_prints_table_three_for_the_shipped_model(capsys):
     assert main(["eval", "system", "--model", str(model), "--pairs", "3", "--json"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["pairs"] == 3 and result["success"] == 100.0
-    assert result["appearance"] == "clean"  # the shipped model's training data's
+    assert result["appearance"] == "camera"  # the shipped model's training data's
     assert result["table3"] == {"system": 100.0, "transitions": 100.0, "vfm": 100.0, "apn": 100.0}
 
 

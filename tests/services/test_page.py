@@ -32,6 +32,8 @@ CLOTH_MODEL = MODEL.parent / "cloth_folding"
 TASK = get_task("box_stacking")
 CLOTH = get_task("cloth_folding")
 TIMEOUT_MS = 30_000
+# assertions wait as long as actions do: on a loaded machine a reply may take seconds
+expect.set_options(timeout=TIMEOUT_MS)
 
 
 def chromium() -> str:
