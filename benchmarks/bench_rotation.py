@@ -3,7 +3,7 @@
 Usage:
     .venv/bin/python benchmarks/bench_rotation.py [--model models/box_stacking]
         [--turns 0 1.5 3 5 10] [--states 400] [--pairs 1000] [--seed 17]
-        [--json runs/rotation.json] [--figure docs/img/rotation.png]
+        [--json runs/rotation.json] [--figure docs/images/rotation_box.png]
 
 For each turn (degrees of the camera's roll, pitch and yaw, each drawn within +-turn; 1.5 is
 the `camera` level's, 5 robosuite's default) every other part of the `camera` look stays at
