@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from functools import cached_property
 from typing import Any, Generic, TypeVar
 
@@ -141,6 +141,16 @@ class Task(ABC, Generic[State, Action]):
         """Parts of a state that its images cannot show (none for most tasks): evaluations
         report plans between states that show everything apart from the rest."""
         return frozenset()
+
+    def view(self, state: State) -> Hashable:
+        """What a camera above shows of `state`: the state itself for most tasks; a task with
+        hidden parts (`hidden`) maps the states that look alike to one view."""
+        return state
+
+    def num_views(self) -> int | None:
+        """How many views the states give (None: the states cannot be enumerated)."""
+        states = self.all_states()
+        return None if states is None else len({self.view(s) for s in states})
 
     def sample_state(self, rng: np.random.Generator) -> State:
         """A state drawn uniformly; tasks that cannot enumerate their states override this."""

@@ -58,6 +58,7 @@ class BoxStacking(Task[Stacks, Move]):
             "columns": c.columns,
             "levels": c.levels,
             "num_states": len(self.all_states()),
+            "num_views": self.num_views(),  # every state is its own view
             "num_transitions": sum(len(self.legal_actions(s)) for s in self.all_states()),
             "state_format": {"stacks": "one list per column (left to right), box ids bottom-up"},
             "action_format": {

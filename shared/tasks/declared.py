@@ -271,6 +271,7 @@ class DataTask(Task[None, Action]):
             "declared": True,
             **self.markers_info(),
             "capabilities": {"states": False, "rules": False, "world": False},
+            "num_views": None,  # no states to view
             "action_fields": list(self.fields),
             "action_format": self._format(),
             "spec": self.spec.to_json(),

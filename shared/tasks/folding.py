@@ -142,6 +142,7 @@ class FoldingTask(Task[Folds, ClothAction]):
             **self.markers_info(),
             "locked_by": {fold: list(held) for fold, held in self.locks().items()},
             "num_states": len(self.all_states()),
+            "num_views": self.num_views(),  # what a camera above can tell apart
             "num_transitions": sum(len(self.legal_actions(s)) for s in self.all_states()),
             "image_frame": f,
             "tolerance_px": self.tolerance,

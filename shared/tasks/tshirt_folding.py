@@ -150,6 +150,12 @@ class TshirtFolding(FoldingTask):
             return frozenset()
         return frozenset(sleeve for sleeve, side in SIDE_OF.items() if side in state)
 
+    def view(self, state: Folds) -> tuple[Folds, tuple[str, ...]]:
+        """The folds a camera above sees, and the sleeves it cannot see (folded or not): the
+        32 states give 25 views."""
+        hidden = self.hidden(state)
+        return tuple(f for f in state if f not in hidden), tuple(sorted(hidden))
+
     def info(self) -> dict[str, Any]:
         c = self.config
         return {

@@ -126,3 +126,19 @@ def test_info_follows_the_interface():
 def test_invalid_states_are_named(state, message):
     with pytest.raises(InvalidStateError, match=message):
         TASK.parse_state(state)
+
+
+def test_views_are_what_a_camera_above_tells_apart():
+    """32 states, 25 views (interface.md, "Views"): with the bottom half folded, a folded
+    side hides its sleeve, folded or not; every other part shows."""
+    shirt = get_task("tshirt_folding")
+    assert shirt.num_views() == 25 and shirt.info()["num_views"] == 25
+    hidden = shirt.parse_state({"folds": ["left_sleeve", "left_side", "bottom_half"]})
+    open_sleeve = shirt.parse_state({"folds": ["left_side", "bottom_half"]})
+    assert shirt.view(hidden) == shirt.view(open_sleeve)
+    shown = shirt.parse_state({"folds": ["left_sleeve", "left_side"]})
+    assert shirt.view(shown) != shirt.view(shirt.parse_state({"folds": ["left_side"]}))
+    for name, states in (("box_stacking", 288), ("cloth_folding", 16)):
+        task = get_task(name)  # nothing hides: every state is its own view
+        assert task.num_views() == states == task.info()["num_views"]
+        assert all(task.view(s) == s for s in task.all_states())
