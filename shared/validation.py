@@ -39,22 +39,6 @@ def parse_state(task: Task, field: str, obj: Any) -> Any:
     return state
 
 
-def check_images(
-    field: str, array: WireArray, size: int, max_rows: int | None = None
-) -> np.ndarray:
-    """uint8 images of shape (N, size, size, 3); with max_rows=None a single (size, size, 3)."""
-    images = array.numpy()
-    shape = (size, size, 3) if max_rows is None else (*images.shape[:1], size, size, 3)
-    if array.dtype != "|u1" or images.shape != shape:
-        expected = f"({size}, {size}, 3)" if max_rows is None else f"(N, {size}, {size}, 3)"
-        raise FieldError(
-            field, f"expected uint8 {expected}, got {array.dtype} {list(images.shape)}"
-        )
-    if max_rows is not None and not 1 <= len(images) <= max_rows:
-        raise FieldError(field, f"1 to {max_rows} images per request, got {len(images)}")
-    return images.copy()  # writable, as torch wants it; the wire's buffer is read-only
-
-
 MAX_FRAME = 4096  # pixels a side of a camera frame
 
 
