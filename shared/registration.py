@@ -79,10 +79,6 @@ class Registration:
             self._black = np.asarray(workcell.black, np.float64)
             self._white = np.asarray(workcell.white, np.float64)
 
-    @property
-    def enabled(self) -> bool:
-        return self.workcell is not None
-
     def _detector(self) -> cv2.aruco.ArucoDetector:
         detector = getattr(self._local, "detector", None)
         if detector is None:

@@ -282,7 +282,9 @@ class Observer:
     def table_frame(self, image: np.ndarray) -> np.ndarray:
         """An image given from outside (a goal): at the model's size as it is, else a frame
         registered (RegistrationError when it cannot be)."""
-        size = self.world.image_size
-        if image.shape[:2] == (size, size) or self.registration is None or not self.register:
+        if self.registration is None or not self.register:
             return image
-        return self.registration.register(image).image
+        (registered,), (why,) = to_table_frame(self.registration, [image])  # the one size rule
+        if why is not None:
+            raise RegistrationError(why)
+        return registered
