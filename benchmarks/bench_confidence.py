@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from services.planner.action_plans import ActionPlanner
 from services.planner.build import load_labels
 from services.planner.eval_vfm import load_test_images
-from services.planner.evaluate import action_leads, sample_test_pairs
+from services.planner.evaluate import TransitionChecker, sample_test_pairs
 from services.planner.versions import roadmap_dir
 from shared.plans import UnknownImageError
 
@@ -77,6 +77,7 @@ def main() -> None:
     task = planner.task
     labels = load_labels(roadmap_dir(args.model), task.name)
     node_states = [task.array_to_state(s) for s in labels.states]
+    checker = TransitionChecker(task)  # judged by views, as plans are
     images, states, _ = load_test_images(args.test)
     z, errors = planner.planner.look(images)
     confidence, support, steps, valid = [], [], [], []
@@ -91,11 +92,8 @@ def main() -> None:
         no_plan += not plans
         for plan in plans:
             path = [node_states[n] for n in plan.nodes]
-            ok = path[0] == start and path[-1] == goal
-            ok = ok and all(
-                action_leads(task, a, action, b)
-                for (a, b), action in zip(itertools.pairwise(path), plan.actions, strict=True)
-            )
+            ok = checker.same(path[0], start) and checker.same(path[-1], goal)
+            ok = ok and checker.actions_lead(path, plan.actions)
             confidence.append(plan.confidence)
             support.append(plan.support)
             steps.append(len(plan.actions))

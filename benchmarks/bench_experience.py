@@ -65,7 +65,7 @@ def against_states(model: Path, roadmap: Roadmap) -> dict[str, int]:
     if not (folder / MEMBERS).is_file():
         return {}
     task = get_task(json.loads((model / "vae" / "config.json").read_text())["dataset"]["task"])
-    labels = state_labels(roadmap, Members.load(folder))
+    labels = state_labels(roadmap, Members.load(folder), task)
     state = {
         n: task.array_to_state(labels.states[n]) for n in np.flatnonzero(labels.members).tolist()
     }

@@ -16,6 +16,7 @@ from services.planner.evaluate import evaluate_plans, label_nodes, sample_test_p
 from services.planner.members import encode_pairs, interleave
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from shared.dataset import load_dataset
+from shared.tasks import get_task
 
 
 def main() -> None:
@@ -46,7 +47,9 @@ def main() -> None:
     for w in args.w:
         config = RoadmapConfig(metric, w, args.min_samples, eps_rule=args.eps_rule)
         roadmap = build_roadmap(mu1, mu2, train.a, config)
-        labels = label_nodes(roadmap.point_node, point_states, roadmap.num_nodes)
+        labels = label_nodes(
+            roadmap.point_node, point_states, roadmap.num_nodes, get_task(train.task)
+        )
         r = evaluate_plans(train.task, roadmap, labels, z_test, test_states, pairs, 1000)
         print(
             f"{w:5.1f}  {roadmap.epsilon:7.3f}  {roadmap.stats['regions_before_pruning']:7d}  "

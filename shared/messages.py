@@ -216,6 +216,7 @@ class RunReply(Message):
     detail: str | None = None  # the planner's words where it refused the scene
     final_state: Any
     actions: list[dict[str, Any]]
+    final_view: Any = None  # what a camera above shows of it (Task.view_to_json)
     images: WireArray  # uint8 (steps, H, W, 3): observed after each action
 
 

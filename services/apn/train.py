@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from services.apn.model import APN, HYBRID_MAX_CLASSES, APNConfig, Head
 from services.encoder.checkpoint import encode_images, load_vae
+from services.planner.evaluate import TransitionChecker
 from shared.checkpoint import read_config, replace_atomically, seal, weights_file
 from shared.dataset import load_dataset
 from shared.tasks import get_task
@@ -213,7 +214,9 @@ def evaluate_apn(apn_dir: Path | str, vae_dir: Path | str, test_dir: Path | str)
     """On the unseen action pairs (encoder means): pick, release and both exactly right; for
     pixel actions also the paper's Table II (MSE of the coordinates scaled to [0, 1] and
     standardised), how many pixels the clicks land off, and how often the task's rules see the
-    same move as the demonstrator's."""
+    same move as the demonstrator's; where the test data carry states, how often the action,
+    applied by the rules from a state looking like the pair's first, gives one looking like its
+    second (`leads_to_view`: interface.md, "Views")."""
     model, meta = load_apn(apn_dir)
     spec, mu1, _, mu2, _, u = action_pair_latents(vae_dir, [test_dir])
     predicted, _ = propose(model, mu1, mu2)
@@ -231,12 +234,36 @@ def evaluate_apn(apn_dir: Path | str, vae_dir: Path | str, test_dir: Path | str)
         "both": 100.0 * exact.all(1).mean(),
         "per_field": per_field_errors(spec, predicted, u, meta.get("action_scaled")),
     }
+    leads = _leads_to_view(spec, test_dir, predicted)
+    if leads is not None:
+        out["leads_to_view"] = leads
     if spec.action.pixels:
         scaling = meta.get("action_scaled")
         if scaling is None:
             raise ValueError(f"{apn_dir}: no training statistics (action_scaled); retrain it")
         out |= pixel_action_errors(spec, predicted, u, np.array(scaling["std"]))
     return out
+
+
+def _leads_to_view(spec: TaskSpec, test_dir: Path | str, predicted: np.ndarray) -> float | None:
+    """% of the test action pairs whose predicted action leads, by the task's rules, from the
+    first image's view to the second's; None for a task without states or rules."""
+    data = load_dataset(test_dir)
+    if data.spec.state is None:
+        return None
+    try:
+        task = get_task(spec.task)
+    except TaskError:
+        return None
+    act = data.a == 1
+    checker = TransitionChecker(task)
+    ok = [
+        checker.actions_lead(
+            [task.array_to_state(s1), task.array_to_state(s2)], [task.array_to_action(p)]
+        )
+        for s1, s2, p in zip(data.state1[act], data.state2[act], predicted, strict=True)
+    ]
+    return 100.0 * float(np.mean(ok))
 
 
 def per_field_errors(

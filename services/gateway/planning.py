@@ -300,6 +300,7 @@ class Gateway:
             reason=reply.reason,
             detail=reply.detail,
             final_state=reply.final_state,
+            final_view=reply.final_view,
             steps=[
                 ExecuteStep(action=action, image=png_b64(image))
                 for action, image in zip(reply.actions, reply.images.numpy(), strict=True)

@@ -177,7 +177,7 @@ class ExecuteStep(BaseModel):
 
 
 class ExecuteResponse(BaseModel):
-    success: bool
+    success: bool = Field(description="the final state shows the goal's view (interface.md)")
     reason: str = Field(
         description="goal, or why the run stopped: unknown_start (a scene the model does not "
         "know: nothing was done from it), unknown_goal, unreachable, max_steps, physics: ..."
@@ -185,6 +185,11 @@ class ExecuteResponse(BaseModel):
     detail: str | None = Field(None, description="the planner's words, where it refused")
     final_state: dict[str, Any] | None = Field(
         description="the simulator's state at the end; null when it reads as no valid state"
+    )
+    final_view: dict[str, Any] | None = Field(
+        None,
+        description="what a camera above shows of that state: the state itself unless parts "
+        "of it are hidden (the T-shirt's sleeve under its folded side, named in 'hidden')",
     )
     steps: list[ExecuteStep]
 

@@ -271,6 +271,7 @@ class Viewer:
                         "reason": reply.reason,
                         "detail": reply.detail,
                         "final_state": reply.final_state,
+                        "final_view": reply.final_view,
                         "steps": len(reply.actions),
                     }
                     yield sse("done", outcome)

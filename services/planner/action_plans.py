@@ -12,7 +12,7 @@ from services.apn.model import APN
 from services.apn.train import load_apn, propose
 from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.build import load_labels
-from services.planner.evaluate import action_leads
+from services.planner.evaluate import TransitionChecker, action_leads
 from services.planner.knowing import load_calibration
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
@@ -110,9 +110,9 @@ def edge_actions(
     task: Task, roadmap: Roadmap, apn: APN, node_states: list[Any], show: int = 5
 ) -> dict[str, Any]:
     """The APN's action on every roadmap edge, both ways, applied by the task's rules to the
-    first node's state: does it give the second node's? Plans are chains of these edges (between
-    twin groups, by their first nodes) and the APN sees only the nodes' latents, so these are the
-    actions a closed loop can execute."""
+    first node's state (or one that looks like it): does it give the second node's view? Plans
+    are chains of these edges (between twin groups, by their first nodes) and the APN sees only
+    the nodes' latents, so these are the actions a closed loop can execute."""
     edges = [(int(a), int(b)) for a, b in roadmap.group_edges]
     edges += [(b, a) for a, b in edges]
     if not edges:
@@ -120,10 +120,11 @@ def edge_actions(
     ids = np.array(edges)
     z = roadmap.nodes.astype(np.float32)
     arrays, _ = propose(apn, z[ids[:, 0]], z[ids[:, 1]])
+    checker = TransitionChecker(task)
     wrong = []
     for (a, b), array in zip(edges, arrays, strict=True):
         action = task.array_to_action(array)
-        if not action_leads(task, node_states[a], action, node_states[b]):
+        if not action_leads(checker, node_states[a], action, node_states[b]):
             wrong.append(
                 {
                     "from": task.state_to_json(node_states[a]),

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
+from services.planner.exits import action_exits
 from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, calibrate, save_calibration
 from services.planner.members import MEMBERS, Members, interleave
@@ -16,7 +18,7 @@ from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapCon
 from services.planner.versions import CURRENT, FIRST, current_version, roadmap_dir
 from shared.checkpoint import seal
 from shared.dataset import load_dataset
-from shared.tasks import get_task
+from shared.tasks import declare_task, get_task
 
 LABELS = "labels.json"
 
@@ -51,15 +53,19 @@ def build_from_dataset(
     members = Members.encode(model, data)
     encoded = time.perf_counter()
     roadmap = build_roadmap(members.points[0::2], members.points[1::2], data.a, config)
+    # where each node's actions lead: memory for nodes that stand for look-alike states
+    same = declare_task(data.spec).same_action
+    roadmap = replace(roadmap, exits=action_exits(roadmap.point_node, data.a, data.u, same))
     built = time.perf_counter()
     roadmap.save(out_dir)
     calibration = calibrate_and_seal(roadmap, members, out_dir)
     purity: dict[str, Any] = {}
     if data.spec.state is not None:  # node labels need the states the data declares
+        task = get_task(data.task)
         labels = label_nodes(
-            roadmap.point_node, interleave(data.state1, data.state2), len(roadmap.nodes)
+            roadmap.point_node, interleave(data.state1, data.state2), len(roadmap.nodes), task
         )
-        (Path(out_dir) / LABELS).write_text(json.dumps(labels.to_json(get_task(data.task))) + "\n")
+        (Path(out_dir) / LABELS).write_text(json.dumps(labels.to_json(task)) + "\n")
         purity = {
             "mean_purity": float(labels.purity.mean()) if len(labels.purity) else 0.0,
             "pure_nodes": int((labels.purity == 1).sum()),
@@ -72,6 +78,7 @@ def build_from_dataset(
         "match_threshold": calibration.threshold,
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,
+        "forbidden_turns": sum(map(len, roadmap.turns.values())),
         **{k: v for k, v in roadmap.stats.items() if not isinstance(v, dict)},
     }
 

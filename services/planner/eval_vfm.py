@@ -73,6 +73,7 @@ def run_vfm_eval(
     node_reads = None
     if reader is not None and roadmap.num_nodes:
         node_reads = read_states(reader, decode_latents(vae, roadmap.nodes.astype(np.float32)))
+    task = get_task(task_name)
     row: dict[str, Any] = {
         "model": str(model_dir),
         "vae_metric": vae_config["train"]["metric"],
@@ -83,6 +84,8 @@ def run_vfm_eval(
         "node_purity_mean": float(labels.purity.mean()) if len(labels.purity) else 0.0,
         "pure_nodes": int((labels.purity == 1).sum()),
         "distinct_node_states": len({s.tobytes() for s in labels.states}),
+        "distinct_node_views": len({task.view(task.array_to_state(s)) for s in labels.states}),
+        "num_views": task.num_views(),
         **evaluate_plans(
             task_name,
             roadmap,
@@ -97,7 +100,7 @@ def run_vfm_eval(
     }
     # A state with a part no image shows (the T-shirt's sleeve under its folded half) caps any
     # model; the pairs whose ends show everything measure the method apart from that.
-    both_shown = shows_everything(get_task(task_name), states)[test_pairs].all(1)
+    both_shown = shows_everything(task, states)[test_pairs].all(1)
     if not both_shown.all():
         row["pairs_showing_every_part"] = 100.0 * float(both_shown.mean())
         if both_shown.any():

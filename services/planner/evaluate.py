@@ -1,14 +1,18 @@
 """The paper's Table I, automatically: plan between unseen images and check every step.
 
-A node's true state is the majority state of its training members. A path is correct when its
-first node shows the start state, its last the goal state, and every step is one legal move.
+A node stands for the view most of its training members show (`Task.view`: the state itself
+where nothing hides). A path is correct when its first node looks like the start image, its last
+like the goal image, and a chain of legal moves runs through states looking like its nodes
+(interface.md, "Views"); `by_state` gives the stricter figures that judge the states themselves.
 """
 
 from __future__ import annotations
 
 import itertools
 from collections import Counter
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -53,10 +57,23 @@ class NodeLabels:
         )
 
 
-def label_nodes(point_node: np.ndarray, point_states: np.ndarray, num_nodes: int) -> NodeLabels:
-    """point_states: (2N, *state_shape) for the points numbered z1[0], z2[0], z1[1], ..."""
+def label_nodes(
+    point_node: np.ndarray, point_states: np.ndarray, num_nodes: int, task: Task | None = None
+) -> NodeLabels:
+    """Each node's label: the view most of its members show (`Task.view`; the state itself
+    without a task), given as that view's most common state, and the share showing it.
+    point_states: (2N, *state_shape) for the points numbered z1[0], z2[0], z1[1], ..."""
     shape = point_states.shape[1:]
     keys = [s.tobytes() for s in point_states]
+    views: dict[bytes, Hashable] = {}  # state bytes -> its view
+
+    def view(key: bytes) -> Hashable:
+        if task is None:
+            return key
+        if key not in views:
+            views[key] = task.view(task.array_to_state(_state_array(key, point_states)))
+        return views[key]
+
     states = np.zeros((num_nodes, *shape), point_states.dtype)
     purity = np.zeros(num_nodes)
     members = np.zeros(num_nodes, np.int64)
@@ -65,43 +82,124 @@ def label_nodes(point_node: np.ndarray, point_states: np.ndarray, num_nodes: int
         if node >= 0:
             groups.setdefault(node, Counter())[key] += 1
     for node, counter in groups.items():
-        key, count = counter.most_common(1)[0]
-        states[node] = np.frombuffer(key, point_states.dtype).reshape(shape)
+        by_view: Counter = Counter()
+        for key, count in counter.items():
+            by_view[view(key)] += count
+        shown, count = by_view.most_common(1)[0]
+        key = max((k for k in counter if view(k) == shown), key=counter.__getitem__)
+        states[node] = _state_array(key, point_states)
         members[node] = sum(counter.values())
         purity[node] = count / members[node]
     return NodeLabels(states, purity, members)
 
 
-class TransitionChecker:
-    """Is t one legal move from s? Neighbour sets cached per state."""
+def _state_array(key: bytes, like: np.ndarray) -> np.ndarray:
+    return np.frombuffer(key, like.dtype).reshape(like.shape[1:])
 
-    def __init__(self, task: Task) -> None:
+
+class TransitionChecker:
+    """Judges steps, paths and actions by what a camera above shows (interface.md, "Views"):
+    a path of views is right when some chain of legal moves runs through states showing them,
+    an action when, applied from some state showing the first view, it gives one showing the
+    second. `by_state` judges the states themselves: the stricter per-state figures. Where
+    nothing hides (every state its own view) the two agree."""
+
+    def __init__(self, task: Task, by_state: bool = False) -> None:
         self.task = task
+        self.by_state = by_state
         self._next: dict[Any, set[Any]] = {}
+        self._next_keys: dict[Hashable, set[Hashable]] = {}
+
+    def key(self, state: Any) -> Hashable:
+        return state if self.by_state else self.task.view(state)
+
+    def same(self, s: Any, t: Any) -> bool:
+        """`s` and `t` look alike (are equal, by state)."""
+        return s is not None and t is not None and self.key(s) == self.key(t)
+
+    @cached_property
+    def _showing(self) -> dict[Hashable, tuple[Any, ...]]:
+        groups: dict[Hashable, list[Any]] = {}
+        for s in self.task.all_states() or ():
+            groups.setdefault(self.key(s), []).append(s)
+        return {k: tuple(v) for k, v in groups.items()}
+
+    def showing(self, state: Any) -> tuple[Any, ...]:
+        """Every state that looks like `state` (itself alone, by state)."""
+        if state is None:
+            return ()
+        if self.by_state:
+            return (state,)
+        return self._showing.get(self.key(state), (state,))
+
+    def _successors(self, state: Any) -> set[Any]:
+        if state not in self._next:
+            self._next[state] = {n for _, n in self.task.neighbours(state)}
+        return self._next[state]
 
     def legal(self, s: Any, t: Any) -> bool:
+        """One legal move leads from a state looking like `s` to one looking like `t`."""
         if s is None or t is None:  # an image that shows no valid state
             return False
-        if s not in self._next:
-            self._next[s] = {n for _, n in self.task.neighbours(s)}
-        return t in self._next[s]
+        k = self.key(s)
+        if k not in self._next_keys:
+            self._next_keys[k] = {self.key(n) for u in self.showing(s) for n in self._successors(u)}
+        return self.key(t) in self._next_keys[k]
+
+    def chain(self, states: Sequence[Any]) -> bool:
+        """Some chain of legal moves runs through states looking like `states`, in order."""
+        if any(s is None for s in states):
+            return False
+        reach = set(self.showing(states[0]))
+        for target in states[1:]:
+            k = self.key(target)
+            reach = {n for s in reach for n in self._successors(s) if self.key(n) == k}
+            if not reach:
+                return False
+        return True
+
+    def actions_lead(self, states: Sequence[Any], actions: Sequence[Any]) -> bool:
+        """The actions, applied by the rules from some state looking like `states[0]`, pass
+        through states looking like the rest (None, no action, never does)."""
+        if any(s is None for s in states) or any(a is None for a in actions):
+            return False
+        reach = set(self.showing(states[0]))
+        for action, target in zip(actions, states[1:], strict=True):
+            k = self.key(target)
+            after = set()
+            for s in reach:
+                try:
+                    n = self.task.apply(s, action)
+                except IllegalActionError:
+                    continue
+                if self.key(n) == k:
+                    after.add(n)
+            if not after:
+                return False
+            reach = after
+        return True
 
 
-def action_leads(task: Task, state: Any, action: Any, target: Any) -> bool:
-    """The action, applied by the task's rules to `state`, gives `target` (None never does)."""
-    try:
-        return action is not None and task.apply(state, action) == target
-    except IllegalActionError:
-        return False
+def action_leads(checker: TransitionChecker, state: Any, action: Any, target: Any) -> bool:
+    """The action, applied by the rules from `state` (or one looking like it), gives `target`
+    (or one looking like it); None never does."""
+    return checker.actions_lead([state, target], [action])
 
 
 def path_verdict(
     checker: TransitionChecker, states: list[Any], start: Any, goal: Any
 ) -> tuple[bool, int, int]:
-    """(whole path correct, correct transitions, transitions)."""
+    """(whole path correct, correct transitions, transitions): correct when the path looks
+    like the start at its first node and like the goal at its last, and a chain of legal moves
+    runs through it."""
     ok_steps = sum(checker.legal(a, b) for a, b in itertools.pairwise(states))
     steps = len(states) - 1
-    correct = states[0] == start and states[-1] == goal and ok_steps == steps
+    correct = (
+        checker.same(states[0], start)
+        and checker.same(states[-1], goal)
+        and ok_steps == steps
+        and checker.chain(states)
+    )
     return correct, ok_steps, steps
 
 
@@ -154,16 +252,18 @@ def evaluate_plans(
     node_reads: np.ndarray | None = None,
     calibration: Calibration | None = None,
 ) -> dict[str, Any]:
-    """% All / Any / Trans over the pairs, plus decoded-image agreement when reads are given;
-    with a calibration the ends are connected as the planner connects them (knowing.connect)."""
+    """% All / Any / Trans over the pairs judged by views, and under `by_state` by the nodes'
+    states, plus decoded-image agreement when reads are given; with a calibration the ends are
+    connected as the planner connects them (knowing.connect)."""
     task = get_task(task_name)
-    checker = TransitionChecker(task)
+    judges = {"view": TransitionChecker(task), "state": TransitionChecker(task, by_state=True)}
     if roadmap.num_nodes == 0:  # e.g. a collapsed encoder: every latent in one pruned region
         return {
             "pairs": len(pairs),
             "all": 0.0,
             "any": 0.0,
             "trans": 0.0,
+            "by_state": {"all": 0.0, "any": 0.0, "trans": 0.0},
             "no_path": len(pairs),
             "truncated_at_max_paths": 0,
             "mean_path_nodes": 0.0,
@@ -171,7 +271,8 @@ def evaluate_plans(
         }
     node_states = [task.array_to_state(s) for s in labels.states]
     nearest = np.asarray(roadmap.nearest_node(z_test))
-    n_all = n_any = ok_steps = steps = no_path = truncated = 0
+    counts = {k: Counter() for k in judges}  # all, any, ok_steps, steps
+    no_path = truncated = 0
     image_hits = image_total = 0
     lengths: list[int] = []
     detours: list[float] = []  # plan moves / fewest moves, where a plan is correct
@@ -186,24 +287,37 @@ def evaluate_plans(
             continue
         truncated += len(paths) == max_paths
         lengths.append(len(paths[0]))
-        verdicts = [path_verdict(checker, [node_states[n] for n in p], start, goal) for p in paths]
-        n_all += all(v[0] for v in verdicts)
-        n_any += any(v[0] for v in verdicts)
-        if any(v[0] for v in verdicts) and start != goal:
-            detours.append((len(paths[0]) - 1) / optimal_moves(task, start, goal))
-        ok_steps += sum(v[1] for v in verdicts)
-        steps += sum(v[2] for v in verdicts)
+        for key, judge in judges.items():
+            verdicts = [
+                path_verdict(judge, [node_states[n] for n in p], start, goal) for p in paths
+            ]
+            counts[key].update(
+                all=all(v[0] for v in verdicts),
+                any=any(v[0] for v in verdicts),
+                ok_steps=sum(v[1] for v in verdicts),
+                steps=sum(v[2] for v in verdicts),
+            )
+            if key == "view" and any(v[0] for v in verdicts) and not judge.same(start, goal):
+                fewest = min(optimal_moves(task, s, goal) for s in judge.showing(start))
+                detours.append((len(paths[0]) - 1) / fewest)
         if node_reads is not None:
             for p in paths:
                 hits = (node_reads[p] == labels.states[p]).reshape(len(p), -1).all(1)
                 image_hits += int(hits.sum())
                 image_total += len(p)
     n = len(pairs)
+
+    def table(c: Counter) -> dict[str, float]:
+        return {
+            "all": 100.0 * c["all"] / n,
+            "any": 100.0 * c["any"] / n,
+            "trans": 100.0 * c["ok_steps"] / c["steps"] if c["steps"] else 0.0,
+        }
+
     result = {
         "pairs": n,
-        "all": 100.0 * n_all / n,
-        "any": 100.0 * n_any / n,
-        "trans": 100.0 * ok_steps / steps if steps else 0.0,
+        **table(counts["view"]),
+        "by_state": table(counts["state"]),
         "no_path": no_path,
         "truncated_at_max_paths": truncated,
         "mean_path_nodes": float(np.mean(lengths)) if lengths else 0.0,
@@ -220,7 +334,8 @@ def evaluate_interpolation(
     test_states: np.ndarray,
     pairs: np.ndarray,
 ) -> dict[str, Any]:
-    """The paper's baseline: images decoded along the straight line, read by the state reader.
+    """The paper's baseline: images decoded along the straight line, read by the state reader,
+    judged by views as plans are.
 
     reads[k]: the state arrays read from the n_k decoded points of pair k.
     """

@@ -203,10 +203,11 @@ def components(k: int, edges: np.ndarray) -> int:
     return int(node_components(k, edges).max()) + 1 if k else 0
 
 
-def state_labels(roadmap: Roadmap, members: Members) -> NodeLabels:
-    """Each node's majority true state over its images that came with one (a robot's do not)."""
+def state_labels(roadmap: Roadmap, members: Members, task: Task) -> NodeLabels:
+    """Each node's majority view over its images that came with a true state (a robot's do
+    not)."""
     known = np.where(members.has_state.astype(bool), roadmap.point_node, -1)
-    return label_nodes(known, members.states, roadmap.num_nodes)
+    return label_nodes(known, members.states, roadmap.num_nodes, task)
 
 
 def grow(
@@ -479,7 +480,7 @@ def _grow_model(
     grown.save(partial)
     save_calibration(calibration, partial)
     everything.save(partial)
-    labels = state_labels(grown, everything)
+    labels = state_labels(grown, everything, task)
     if everything.has_state.any() and labels.members.all():
         (partial / LABELS).write_text(json.dumps(labels.to_json(task)) + "\n")
     elif everything.has_state.any():  # a new node of a robot's images only: no state to name

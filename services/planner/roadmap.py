@@ -30,6 +30,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import shortest_path
 from scipy.spatial import cKDTree
 
+from services.planner.exits import Turns, forbidden_turns, memory_paths
 from services.planner.regions import (
     Metric,
     RoadmapError,
@@ -71,6 +72,7 @@ FORMAT_VERSION = 1
 JSON_NAME = "roadmap.json"
 ARRAYS_NAME = "roadmap.safetensors"
 _ARRAY_KEYS = ("nodes", "node_sizes", "edges", "edge_weights", "point_node")
+_OPTIONAL_KEYS = ("twins", "whitening", "exits")
 
 
 @dataclass(frozen=True)
@@ -327,12 +329,16 @@ class Roadmap:
     twins: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     # (D, D) float32 (fit_whitening), or (0, 0): images are matched to nodes in the metric.
     whitening: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    # (X, 3) int64 (from node, to node, action class), sorted and unique: where the training
+    # tuples' actions lead (services.planner.exits); paths take no turn these show impossible.
+    exits: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
     _adjacency: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False)
     _groups: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(
         default=None, init=False, repr=False
     )
     _component: np.ndarray | None = field(default=None, init=False, repr=False)
+    _turns: Turns | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._validate()
@@ -359,6 +365,17 @@ class Roadmap:
         _expect(self.point_node, "point_node", 1, np.int64)
         _expect(self.twins, "twins", 2, np.int64)
         _expect(self.whitening, "whitening", 2, np.float32)
+        _expect(self.exits, "exits", 2, np.int64)
+        if self.exits.shape[1] != 3:
+            raise RoadmapError(f"exits must have shape (X, 3), got {self.exits.shape}")
+        if len(self.exits):
+            ends, classes = self.exits[:, :2], self.exits[:, 2]
+            if (ends < 0).any() or (ends >= k).any() or (classes < 0).any():
+                raise RoadmapError(
+                    f"exits must hold node ids in 0..{k - 1} and action classes >= 0"
+                )
+            if len(np.unique(self.exits, axis=0)) != len(self.exits):
+                raise RoadmapError("exits must be unique")
         dim = self.nodes.shape[1]
         if self.whitening.size and self.whitening.shape != (dim, dim):
             raise RoadmapError(
@@ -574,6 +591,9 @@ class Roadmap:
         s, t = (int(g) for g in self.twin_group[[s, t]])
         if s == t:
             return [[src_node]]
+        if self.turns:
+            paths = self._memory_paths(s, t, banned, max_paths)
+            return [[src_node, *p[1:-1], dst_node] for p in paths]
         indptr, indices, from_s, to_t = self._hops(s, t, banned)
         if not math.isfinite(from_s[t]):
             if not banned:
@@ -607,13 +627,42 @@ class Roadmap:
                 stack.append(iter(onward(v)))
         return paths
 
+    @property
+    def turns(self) -> Turns:
+        """The turns a -> b -> c (twin groups) that the exits show no chain of moves takes
+        (services.planner.exits); empty where every action leads to one node."""
+        if self._turns is None:
+            self._turns = forbidden_turns(self.exits, self.twin_group)
+        return self._turns
+
+    def _memory_paths(
+        self, s: int, t: int, banned: list[tuple[int, int]], max_paths: int
+    ) -> list[list[int]]:
+        """shortest_paths between twin groups s != t, taking no forbidden turn; banned steps
+        let go as shortest_paths lets them go."""
+        indptr, indices = self._neighbour_arrays()
+        group = self.twin_group
+
+        def search(steps: list[tuple[int, int]], limit: int) -> list[list[int]]:
+            pairs = [(int(group[a]), int(group[b])) for a, b in steps]
+            return memory_paths(indptr, indices, self.turns, s, t, pairs, limit)
+
+        paths = search(banned, max_paths)
+        if paths or not banned:
+            return paths
+        kept: list[tuple[int, int]] = []
+        for step in reversed(banned):  # the newest first: each kept that leaves a way
+            if search([*kept, step], 1):
+                kept.append(step)
+        return search(kept[::-1], max_paths)
+
     def save(self, directory: str | Path) -> None:
         """Write roadmap.safetensors (arrays) and roadmap.json (config, scalars, stats)."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
-        # twins and whitening only where there are some: a roadmap without them stays readable
-        # by code from before they existed
-        keys = (*_ARRAY_KEYS, *(k for k in ("twins", "whitening") if getattr(self, k).size))
+        # twins, whitening and exits only where there are some: a roadmap without them stays
+        # readable by code from before they existed
+        keys = (*_ARRAY_KEYS, *(k for k in _OPTIONAL_KEYS if getattr(self, k).size))
         arrays = {key: np.ascontiguousarray(getattr(self, key)) for key in keys}
         replace_atomically(out / ARRAYS_NAME, lambda tmp: save_file(arrays, str(tmp)))
         meta = {
@@ -684,6 +733,7 @@ class Roadmap:
                 **{k: arrays[k] for k in _ARRAY_KEYS},
                 twins=arrays.get("twins", np.zeros((0, 2), np.int64)),
                 whitening=arrays.get("whitening", np.zeros((0, 0), np.float32)),
+                exits=arrays.get("exits", np.zeros((0, 3), np.int64)),
             )
         except RoadmapError as exc:
             raise RoadmapError(f"{folder}: {exc}") from exc

@@ -6,7 +6,6 @@ the ActionPlanner, in the service stack a client of the planning services.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -14,7 +13,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from services.data.experience import Record, Recorder
-from services.planner.evaluate import TransitionChecker, action_leads, path_verdict
+from services.planner.evaluate import TransitionChecker, path_verdict
 from services.sim.workcell import Observer
 from shared.messages import MAX_AVOID
 from shared.plans import UnknownImageError, VisualActionPlan, most_confident
@@ -159,8 +158,9 @@ def run_episode(
     expect: int | None = None  # the node the last step was meant to reach
     step: tuple[int, int] | None = None  # that step, from node to node
     missed: list[tuple[int, int]] = []  # steps whose action led elsewhere
+    looks = world.task.view  # the goal is reached when the scene shows its view
     for _ in range(max_steps):
-        if goal is not None and state == goal:
+        if goal is not None and looks(state) == looks(goal):
             break
         try:
             seen = observer.see()
@@ -228,7 +228,8 @@ def run_episode(
         episode.final_state = world.read_state()
     except WorldError:  # the action left the world in no valid state (a wrecked cloth, say)
         episode.final_state = None
-    episode.success = goal is not None and episode.final_state == goal
+    final = episode.final_state
+    episode.success = goal is not None and final is not None and looks(final) == looks(goal)
     if goal is None:
         episode.success = episode.reason == "planner_at_goal"
     if episode.success:
@@ -237,24 +238,25 @@ def run_episode(
 
 
 class PlanJudge:
-    """Judges plans by the states their roadmap nodes stand for (each node's majority state)."""
+    """Judges plans by the views their roadmap nodes stand for (each node's majority view),
+    as interface.md's "Views" says."""
 
     def __init__(self, task: Task, node_states: list[Any]) -> None:
         self.task = task
         self.node_states = node_states
-        self._checker = TransitionChecker(task)
+        self.checker = TransitionChecker(task)
 
     def visual_plan_ok(self, plan: VisualActionPlan, start: Any, goal: Any) -> bool:
-        """The nodes run from the start state to the goal state, each step one legal move."""
+        """The nodes look like the start, then the goal at the end, and a chain of legal moves
+        runs through them."""
         states = [self.node_states[n] for n in plan.nodes]
-        return path_verdict(self._checker, states, start, goal)[0]
+        return path_verdict(self.checker, states, start, goal)[0]
 
     def action_plan_ok(self, plan: VisualActionPlan) -> bool:
-        """Every action, applied by the rules to its node's state, gives the next node's."""
-        return all(
-            action_leads(self.task, self.node_states[a], action, self.node_states[b])
-            for (a, b), action in zip(itertools.pairwise(plan.nodes), plan.actions, strict=True)
-        )
+        """The actions, applied by the rules from a state looking like the first node, pass
+        through states looking like the next nodes."""
+        states = [self.node_states[n] for n in plan.nodes]
+        return self.checker.actions_lead(states, plan.actions)
 
 
 def evaluate_system(
@@ -269,12 +271,13 @@ def evaluate_system(
     record: Recorder | None = None,
     max_actions: int | None = None,
 ) -> dict[str, Any]:
-    """Random start/goal state pairs run closed loop; success = the simulator reaches the goal.
+    """Random start/goal state pairs run closed loop (goals that look unlike the start);
+    success = the simulator reaches a state that shows the goal's view.
     `max_actions`: a budget of actions tried (legal or refused); the task that reaches it is
     cut short and no further task starts ("pairs" says how many ran).
 
     With a `judge`, also the paper's Table III: correct single transitions (the state after an
-    action tried is the state of the plan's next node; a refused one never is), VFM success
+    action tried looks like the plan's next node; a refused one never does), VFM success
     (some visual plan of the first planning step is correct) and APN success (the chosen
     plan's actions all are).
     """
@@ -294,7 +297,7 @@ def evaluate_system(
         ran += 1
         start = task.sample_state(rng)
         goal = task.sample_state(rng)
-        while goal == start:
+        while task.view(goal) == task.view(start):
             goal = task.sample_state(rng)
         episode = run_episode(planner, world, start, goal, rng, max_steps=steps, record=record)
         executed += len(episode.actions)
@@ -310,7 +313,9 @@ def evaluate_system(
             apn_ok += bool(episode.chosen) and judge.action_plan_ok(episode.chosen[0])
             tried = zip(episode.chosen, episode.states[1:], episode.refused, strict=False)
             for plan, after, refused in tried:
-                right_transitions += not refused and judge.node_states[plan.nodes[1]] == after
+                right_transitions += not refused and judge.checker.same(
+                    judge.node_states[plan.nodes[1]], after
+                )
     if record is not None:
         record.flush()
     attempted = executed + illegal

@@ -237,7 +237,7 @@ def explore(
 def _node_states(task: Task, roadmap: Roadmap, members: Members) -> list[Any]:
     """The state recorded most often among each node's images, where to start the world;
     None for a node whose images came without states (a robot's)."""
-    labels = state_labels(roadmap, members)
+    labels = state_labels(roadmap, members, task)
     return [
         task.array_to_state(s) if n else None
         for s, n in zip(labels.states, labels.members, strict=True)

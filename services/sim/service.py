@@ -146,6 +146,9 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             final_state=(
                 None if episode.final_state is None else task.state_to_json(episode.final_state)
             ),
+            final_view=(
+                None if episode.final_state is None else task.view_to_json(episode.final_state)
+            ),
             actions=[task.action_to_json(a) for a in episode.actions],
             images=WireArray.of(images.astype(np.uint8)),
         )

@@ -152,6 +152,11 @@ class Task(ABC, Generic[State, Action]):
         states = self.all_states()
         return None if states is None else len({self.view(s) for s in states})
 
+    def view_to_json(self, state: State) -> dict[str, Any]:
+        """The JSON of `view(state)`: the state's own where nothing hides; a task with hidden
+        parts names them, so that a viewer can draw them as unknown."""
+        return self.state_to_json(state)
+
     def sample_state(self, rng: np.random.Generator) -> State:
         """A state drawn uniformly; tasks that cannot enumerate their states override this."""
         states = self.all_states()
@@ -258,13 +263,15 @@ class World(ABC, Generic[State, Action]):
         self.close()
 
 
-def optimal_moves(task: Task, start: Any, goal: Any) -> int | None:
-    """Breadth-first search over the task's state graph."""
+def optimal_moves(task: Task, start: Any, goal: Any, by_state: bool = False) -> int | None:
+    """Fewest moves from `start` to a state that shows `goal`'s view (`Task.view`), or to
+    `goal` itself with `by_state`: breadth-first search over the task's state graph."""
+    target = goal if by_state else task.view(goal)
     seen = {start: 0}
     queue = deque([start])
     while queue:
         state = queue.popleft()
-        if state == goal:
+        if (state if by_state else task.view(state)) == target:
             return seen[state]
         for _, nxt in task.neighbours(state):
             if nxt not in seen:

@@ -156,6 +156,11 @@ class TshirtFolding(FoldingTask):
         hidden = self.hidden(state)
         return tuple(f for f in state if f not in hidden), tuple(sorted(hidden))
 
+    def view_to_json(self, state: Folds) -> dict[str, Any]:
+        """`{"folds": [...], "hidden": [...]}`: the folds seen, and the sleeves no image shows."""
+        folds, hidden = self.view(state)
+        return {"folds": list(folds), "hidden": list(hidden)}
+
     def info(self) -> dict[str, Any]:
         c = self.config
         return {

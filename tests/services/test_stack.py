@@ -428,6 +428,7 @@ def test_execute_reaches_the_goal(http):
     body = reply.json()
     assert body["success"] and body["reason"] == "goal"
     assert body["final_state"] == TASK.state_to_json(TASK.parse_state(GOAL))
+    assert body["final_view"] == body["final_state"]  # nothing of a box state hides
     assert 5 <= len(body["steps"]) <= 8  # the optimum is 5 moves
     assert all(
         Image.open(io.BytesIO(base64.b64decode(s["image"]))).size == (64, 64) for s in body["steps"]

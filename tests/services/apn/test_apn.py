@@ -83,6 +83,9 @@ def test_train_load_evaluate(tiny_model):
     assert actions.shape == (2, 4) and confidences.shape == (2,)
     result = evaluate_apn(model_dir / "apn", model_dir / "vae", data)
     assert 0 <= result["both"] <= min(result["pick"], result["release"]) <= 100
+    # an action that is exactly right leads to the pair's view (and a few right ones may be
+    # right by another cell of the same stack)
+    assert result["both"] <= result["leads_to_view"] <= 100
 
 
 def test_load_error(tmp_path):

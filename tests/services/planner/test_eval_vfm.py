@@ -1,6 +1,7 @@
 """Evaluation on a roadmap whose truth is known, and the whole CLI path on tiny models."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from services.planner.evaluate import (
     sample_test_pairs,
     shows_everything,
 )
+from services.planner.exits import action_exits
 from services.planner.members import interleave
 from services.planner.roadmap import RoadmapConfig, build_roadmap
 from services.sim.datagen import GenerateConfig, generate
@@ -55,6 +57,7 @@ def test_perfect_latents_give_perfect_plans(synthetic):
     pairs = sample_test_pairs(len(z_test), 200, seed=1)
     result = evaluate_plans("box_stacking", roadmap, labels, z_test, test_states, pairs, 50)
     assert (result["all"], result["any"], result["trans"]) == (100.0, 100.0, 100.0)
+    assert result["by_state"] == {"all": 100.0, "any": 100.0, "trans": 100.0}  # nothing hides
     # Detours: the roadmap's plans against the fewest legal moves, pair by pair.
     ratios = []
     for i, j in pairs:
@@ -74,6 +77,45 @@ def test_a_wrong_node_label_is_caught(synthetic):
     pairs = sample_test_pairs(len(z_test), 300, seed=2)
     result = evaluate_plans("box_stacking", roadmap, swapped, z_test, test_states, pairs, 50)
     assert result["any"] < 100.0 and result["trans"] < 100.0
+
+
+def test_latents_that_see_only_views_give_right_plans_by_view_not_by_state():
+    """The T-shirt as a camera sees it: states that look alike share one latent centre. Judged
+    by views every plan is right once the roadmap remembers where its nodes' actions lead
+    (exits); without that memory it plans through look-alike states by turns no chain of moves
+    takes. The per-state figures (by_state) cannot all be right."""
+    shirt = get_task("tshirt_folding")
+    rng = np.random.default_rng(0)
+    states = shirt.all_states()
+    views = sorted({shirt.view(s) for s in states}, key=str)
+    centres = {v: rng.normal(0, 10, 16) for v in views}
+    z1, z2, a, u, s1, s2 = [], [], [], [], [], []
+    for _ in range(3000):
+        s = states[int(rng.integers(len(states)))]
+        moves = shirt.neighbours(s)
+        act = rng.random() < 0.65
+        move, t = moves[int(rng.integers(len(moves)))] if act else (None, s)
+        z1.append(centres[shirt.view(s)] + rng.normal(0, 0.05, 16))
+        z2.append(centres[shirt.view(t)] + rng.normal(0, 0.05, 16))
+        a.append(int(act))
+        u.append(shirt.action_to_array(move))
+        s1.append(shirt.state_to_array(s))
+        s2.append(shirt.state_to_array(t))
+    a = np.array(a)
+    plain = build_roadmap(np.array(z1), np.array(z2), a, RoadmapConfig("l1", 1.0, min_samples=3))
+    exits = action_exits(plain.point_node, a, np.array(u), shirt.same_action)
+    roadmap = replace(plain, exits=exits)
+    point_states = interleave(np.array(s1), np.array(s2))
+    labels = label_nodes(roadmap.point_node, point_states, roadmap.num_nodes, shirt)
+    assert roadmap.num_nodes == 25 and (labels.purity == 1).all()  # one node a view
+    test_states = np.stack([shirt.state_to_array(s) for s in states])
+    z_test = np.stack([centres[shirt.view(s)] for s in states]) + rng.normal(0, 0.05, (32, 16))
+    pairs = sample_test_pairs(len(states), 300, seed=1)
+    result = evaluate_plans("tshirt_folding", roadmap, labels, z_test, test_states, pairs, 50)
+    assert (result["all"], result["any"], result["trans"]) == (100.0, 100.0, 100.0)
+    assert result["by_state"]["all"] < 100.0 and result["by_state"]["any"] < 100.0
+    forgetful = evaluate_plans("tshirt_folding", plain, labels, z_test, test_states, pairs, 50)
+    assert forgetful["all"] < 95.0 and forgetful["trans"] == 100.0  # every step alone is legal
 
 
 def test_pairs_with_a_hidden_end_are_told_apart():
@@ -127,6 +169,8 @@ def test_cli_eval_on_tiny_models(tiny_model, tmp_path, capsys):
         "decoded_agreement",
         "interpolation",
         "node_purity_mean",
+        "by_state",
+        "num_views",
         "mean_min_inter_minus_max_intra",
     ):
         assert key in row

@@ -11,6 +11,7 @@ from services.planner.evaluate import (
     sample_test_pairs,
 )
 from shared.tasks import get_task
+from shared.tasks.base import optimal_moves
 
 TASK = get_task("box_stacking")
 S0 = TASK.parse_state({"stacks": [["red", "green"], [], ["blue", "yellow"]]})
@@ -34,6 +35,58 @@ def test_path_verdicts():
     assert path_verdict(checker, [S0, S2], S0, S2) == (False, 0, 1)  # two moves in one step
     assert path_verdict(checker, [S0, S1], S0, S2) == (False, 1, 1)  # wrong goal
     assert path_verdict(checker, [S0, S0], S0, S0) == (False, 0, 1)  # standing still
+
+
+SHIRT = get_task("tshirt_folding")
+
+
+def shirt(*folds):
+    return SHIRT.parse_state({"folds": list(folds)})
+
+
+# With the bottom half folded, the left side hides its sleeve: these two look alike.
+SIDE_HALF, HIDDEN_SLEEVE = (
+    shirt("left_side", "bottom_half"),
+    shirt("left_sleeve", "left_side", "bottom_half"),
+)
+UNFOLD_HALF = SHIRT.moves["unfold", "bottom_half"].action
+
+
+def test_paths_and_actions_are_judged_by_views_and_by_state_apart():
+    """interface.md, "Views": right when some state showing each view chains the moves."""
+    view, state = TransitionChecker(SHIRT), TransitionChecker(SHIRT, by_state=True)
+    # the node stands for the view; from the hidden-sleeve state unfolding the half shows it
+    path = [SIDE_HALF, shirt("left_sleeve", "left_side")]
+    assert path_verdict(view, path, HIDDEN_SLEEVE, path[-1]) == (True, 1, 1)
+    assert path_verdict(state, path, HIDDEN_SLEEVE, path[-1]) == (False, 0, 1)
+    assert view.actions_lead(path, [UNFOLD_HALF])
+    assert not state.actions_lead(path, [UNFOLD_HALF])
+    # no state of that view unfolds into a folded right sleeve
+    wrong = [SIDE_HALF, shirt("right_sleeve", "left_side")]
+    assert path_verdict(view, wrong, SIDE_HALF, wrong[-1]) == (False, 0, 1)
+    assert not view.actions_lead(wrong, [UNFOLD_HALF])
+    # each step may be legal alone and still no one chain of states run through them all
+    a, b = shirt("left_sleeve", "left_side"), shirt("left_side")
+    assert view.legal(a, HIDDEN_SLEEVE) and view.legal(HIDDEN_SLEEVE, b)
+    assert not view.chain([a, HIDDEN_SLEEVE, b])
+    assert view.same(SIDE_HALF, HIDDEN_SLEEVE) and not state.same(SIDE_HALF, HIDDEN_SLEEVE)
+    assert set(view.showing(SIDE_HALF)) == {SIDE_HALF, HIDDEN_SLEEVE}
+
+
+def test_fewest_moves_to_a_view():
+    flat = shirt()
+    assert optimal_moves(SHIRT, flat, HIDDEN_SLEEVE) == 2  # the left side, then the half
+    assert optimal_moves(SHIRT, flat, HIDDEN_SLEEVE, by_state=True) == 3
+
+
+def test_a_node_stands_for_the_view_most_of_its_members_show():
+    arrays = [SHIRT.state_to_array(s) for s in (SIDE_HALF, HIDDEN_SLEEVE, shirt("right_side"))]
+    point_states = np.stack([arrays[0]] * 3 + [arrays[1]] * 2 + [arrays[2]] * 4)
+    nodes = np.zeros(len(point_states), np.int64)
+    by_view = label_nodes(nodes, point_states, 1, SHIRT)
+    assert np.array_equal(by_view.states[0], arrays[0]) and by_view.purity[0] == 5 / 9
+    by_state = label_nodes(nodes, point_states, 1)  # no task: the states themselves
+    assert np.array_equal(by_state.states[0], arrays[2]) and by_state.purity[0] == 4 / 9
 
 
 def test_interpolation_counts_unreadable_states_as_wrong():

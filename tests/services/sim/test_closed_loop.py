@@ -23,7 +23,7 @@ class OraclePlanner:
 
     def plan(self, start, goal, max_plans=8, expect=None, avoid=()):
         task, state = self.world.task, self.world.read_state()
-        if state == self.goal:
+        if task.view(state) == task.view(self.goal):
             return [VisualActionPlan([0], [start], [], [], [])]
         best = min(task.neighbours(state), key=lambda m: optimal_moves(task, m[1], self.goal))
         return [VisualActionPlan([0, 1], [start, goal], [best[0]], [1.0], [1])]
@@ -58,6 +58,23 @@ def test_loop_reaches_the_goal_with_an_oracle(world):
     assert episode.success and episode.reason == "goal"
     assert len(episode.actions) == optimal_moves(world.task, start, goal)
     assert len(episode.images) == len(episode.actions)
+
+
+def test_a_goal_with_a_hidden_sleeve_is_reached_when_the_scene_shows_its_view():
+    """interface.md, "Views": success is the goal's view, whatever the sleeve under the
+    folded side does; the fewest moves to it skip folding that sleeve."""
+    from services.sim.tshirt_folding.world import TshirtFoldingWorld
+
+    with TshirtFoldingWorld(image_size=32) as shirt:
+        task = shirt.task
+        start = task.parse_state({"folds": []})
+        goal = task.parse_state({"folds": ["left_sleeve", "left_side", "bottom_half"]})
+        episode = run_episode(
+            OraclePlanner(shirt, goal), shirt, start, goal, np.random.default_rng(4)
+        )
+        assert episode.success and episode.reason == "goal"
+        assert episode.final_state == ("left_side", "bottom_half") != goal
+        assert len(episode.actions) == optimal_moves(task, start, goal) == 2
 
 
 class WrongStepPlanner:

@@ -16,7 +16,7 @@ def test_thirty_two_states_eighty_transitions_and_plans_up_to_eight_moves():
     states = TASK.all_states()
     assert len(set(states)) == 32
     assert sum(len(TASK.legal_actions(s)) for s in states) == 80
-    assert max(optimal_moves(TASK, a, b) for a in states for b in states) == 8
+    assert max(optimal_moves(TASK, a, b, by_state=True) for a in states for b in states) == 8
     for s in states:
         assert TASK.parse_state(TASK.state_to_json(s)) == s
         assert TASK.array_to_state(TASK.state_to_array(s)) == s
