@@ -81,9 +81,25 @@ class RoadmapNode(BaseModel):
     id: int
     x: float = Field(description="layout position in [0, 1]")
     y: float
-    state: dict[str, Any] | None = Field(description="the node's majority true state, if known")
+    state: dict[str, Any] | None = Field(
+        description="the most common state of the node's majority view, if known"
+    )
+    view: dict[str, Any] | None = Field(
+        None,
+        description="what a camera above shows of it: the state, less any part it hides "
+        "(named in 'hidden', drawn as unknown)",
+    )
     purity: float | None
     group: int = Field(description="its twin group: the smallest id of the nodes of one state")
+
+
+def node_views(task: str, states: list[dict[str, Any] | None]) -> list[dict[str, Any] | None]:
+    """Each labelled node's view (Task.view_to_json); None where a node or task has no state."""
+    try:
+        known = get_task(task)
+        return [None if s is None else known.view_to_json(known.parse_state(s)) for s in states]
+    except TaskError:  # a task known only from its data: no states to view
+        return [None] * len(states)
 
 
 class RoadmapGraph(BaseModel):
@@ -171,6 +187,7 @@ class Viewer:
         positions = graph_layout(len(latents), np.concatenate([edges, twins]))
         groups = twin_groups(len(latents), twins)
         states = reply.states or [None] * len(latents)
+        views = node_views(task, states)
         purity = reply.purity or [None] * len(latents)
         graph = RoadmapGraph(
             task=task,
@@ -183,6 +200,7 @@ class Viewer:
                     x=float(x),
                     y=float(y),
                     state=states[i],
+                    view=views[i],
                     purity=purity[i],
                     group=int(groups[i]),
                 )

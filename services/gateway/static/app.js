@@ -102,7 +102,11 @@ function stateText(state) {
   if (state.stacks) {
     return state.stacks.map((c) => "[" + c.map((b) => b[0].toUpperCase()).join("") + "]").join(" ");
   }
-  if (state.folds) return state.folds.length ? state.folds.join(", ") : "flat";
+  if (state.folds) {
+    // a view names the folds a camera above cannot see: unknown, folded or not
+    const hidden = (state.hidden || []).map((f) => `${f.replace("_", " ")} unknown`);
+    return [state.folds.length ? state.folds.join(", ") : "flat", ...hidden].join(" · ");
+  }
   return JSON.stringify(state);
 }
 function actionText(action) {
@@ -373,9 +377,9 @@ function frame(src, alt, mark, size) {
   return box;
 }
 
-function nodeState(node) {
+function nodeState(node) {  // what the node shows: its view, where the planner labels it
   const found = ui.graph && ui.graph.nodes[node];
-  return found ? found.state : null;
+  return found ? found.view || found.state : null;
 }
 
 // How well the model knows each end: an end it does not know gets no plan, and says so.
@@ -490,7 +494,7 @@ async function execute() {
         status.textContent = data.success ?
           `Success: the simulator reached the goal in ${data.steps} step${data.steps === 1 ? "" : "s"}.` :
           `Failure: the goal was not reached (${data.detail || data.reason}) after ` +
-          `${data.steps} steps; final state ${stateText(data.final_state)}.`;
+          `${data.steps} steps; final state ${stateText(data.final_view || data.final_state)}.`;
       } else if (event === "error") {
         status.className = "failure";
         status.textContent = "Execution stopped.";
@@ -668,7 +672,7 @@ async function showNode(id, event) {
   const tip = $("node-tip");
   const node = ui.graph.nodes[id];
   const img = el("img", { alt: `decoded image of node ${id}` });
-  tip.replaceChildren(img, el("div", { text: `node ${id}: ${stateText(node.state)}` +
+  tip.replaceChildren(img, el("div", { text: `node ${id}: ${stateText(node.view || node.state)}` +
     (node.purity !== null ? ` (purity ${node.purity.toFixed(2)})` : "") }));
   const area = $("roadmap-view").getBoundingClientRect();
   let x = 12;

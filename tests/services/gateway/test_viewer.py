@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.gateway.auth import digest
-from services.gateway.viewer import Viewer, graph_layout
+from services.gateway.viewer import Viewer, graph_layout, node_views
 from services.planner.service import node_labels
 from shared.messages import GraphReply, WireArray
 
@@ -57,6 +57,18 @@ def test_the_graph_names_each_nodes_twin_group_so_plans_step_between_groups(monk
     monkeypatch.setattr(viewer, "_call", lambda *args: plain)
     graph, _ = viewer.graph("box_stacking")
     assert [n.group for n in graph.nodes] == [0, 1, 2, 3, 4] and graph.twins == []
+
+
+def test_nodes_show_their_views_with_the_hidden_sleeves_named():
+    hidden = {"folds": ["left_sleeve", "left_side", "bottom_half"]}
+    views = node_views("tshirt_folding", [hidden, {"folds": []}, None])
+    assert views == [
+        {"folds": ["left_side", "bottom_half"], "hidden": ["left_sleeve"]},
+        {"folds": [], "hidden": []},
+        None,
+    ]
+    box = {"stacks": [["red"], ["green"], ["blue", "yellow"]]}
+    assert node_views("box_stacking", [box]) == [box]  # nothing of a box state hides
 
 
 def test_node_labels_are_read_only_when_they_fit_the_roadmap(tmp_path):

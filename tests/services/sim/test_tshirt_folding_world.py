@@ -76,8 +76,34 @@ def test_an_illegal_action_leaves_the_shirt_as_it_was(shirt):
 def test_a_pick_with_no_top_layer_is_refused_by_name(shirt):
     shirt.reset((), np.random.default_rng(5))
     unfold = shirt.task.moves["unfold", "left_side"].action  # a legal-looking click, flat cloth
-    with pytest.raises(InvalidActionError, match="single layer"):
+    with pytest.raises(InvalidActionError, match="hits no cloth of the folded left_side"):
         shirt.grasp(unfold)
+
+
+@pytest.mark.parametrize(
+    ("state", "kind", "fold", "offset"),
+    [
+        ((), "fold", "right_side", (0, 7)),  # both clicks 7 px right: a line 1.6 cm off
+        (("right_sleeve", "right_side"), "fold", "left_sleeve", (7, -7)),  # the pick off cloth
+        (("left_sleeve",), "unfold", "left_sleeve", (0, 9)),  # the pick towards the crease
+        (("right_side", "bottom_half"), "unfold", "bottom_half", (-6, 6)),  # off the flap
+    ],
+)
+def test_clicks_anywhere_within_the_tolerance_make_the_move(shirt, state, kind, fold, offset):
+    """The click names the move; the hand folds on the garment's own line and takes the
+    nearest cloth of the flap (bench_landing.py measures this over every move)."""
+    rng = np.random.default_rng(8)
+    task = shirt.task
+    canonical = task.moves[kind, fold].action
+    row, col = offset
+    clicked = ClothAction(
+        Pixel(canonical.pick.row + row, canonical.pick.col + col),
+        Pixel(canonical.release.row + row, canonical.release.col + col),
+        canonical.height,
+    )
+    assert task.match(clicked) is task.moves[kind, fold]
+    shirt.reset(state, rng)
+    assert shirt.execute(clicked, rng) == task.apply(state, clicked)
 
 
 def test_a_shirt_that_matches_no_state_names_the_nearest(shirt):
