@@ -179,6 +179,20 @@ class TransitionChecker:
             reach = after
         return True
 
+    def reaches(self, start: Any, actions: Sequence[Any], goal: Any) -> bool:
+        """A visual action plan's verdict (interface.md, "Views"): its actions, applied from
+        some state looking like `start`, are legal moves that end in one looking like `goal`."""
+        reach = set(self.showing(start))
+        for action in actions:
+            after = set()
+            for s in reach:
+                try:
+                    after.add(self.task.apply(s, action))
+                except IllegalActionError:
+                    continue
+            reach = after
+        return any(self.same(s, goal) for s in reach)
+
 
 def action_leads(checker: TransitionChecker, state: Any, action: Any, target: Any) -> bool:
     """The action, applied by the rules from `state` (or one looking like it), gives `target`

@@ -5,8 +5,9 @@ garment's own fold line where the shirt lies now, as a folding cell that sees th
 so that any click naming the move makes it (benchmarks/bench_landing.py). The gripper takes
 the cloth on the flap's side of that line near the pick: every layer there (height 0) or the
 folded flap lying on top (height 1), as a folding board takes a flap, and turns it about the
-line onto its mirror image, lays it down, lets go and lets the shirt settle. The state is read back part by part (sleeves,
-side strips, middle; top and bottom halves), so that a sleeve hidden in its side flap counts.
+line onto its mirror image, lays it down, lets go and lets the shirt settle. The state is read
+back part by part (sleeves, side strips, middle; top and bottom halves), so that a sleeve
+hidden in its side flap counts.
 """
 
 from __future__ import annotations

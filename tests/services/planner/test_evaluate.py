@@ -70,6 +70,12 @@ def test_paths_and_actions_are_judged_by_views_and_by_state_apart():
     assert view.legal(a, HIDDEN_SLEEVE) and view.legal(HIDDEN_SLEEVE, b)
     assert not view.chain([a, HIDDEN_SLEEVE, b])
     assert view.same(SIDE_HALF, HIDDEN_SLEEVE) and not state.same(SIDE_HALF, HIDDEN_SLEEVE)
+    # a plan's actions: from some state showing the start, legal, ending showing the goal
+    fold_half = SHIRT.moves["fold", "bottom_half"].action
+    assert view.reaches(shirt("left_sleeve", "left_side"), [fold_half], SIDE_HALF)
+    assert not state.reaches(shirt("left_sleeve", "left_side"), [fold_half], SIDE_HALF)
+    assert view.reaches(SIDE_HALF, [UNFOLD_HALF], shirt("left_sleeve", "left_side"))
+    assert not view.reaches(SIDE_HALF, [UNFOLD_HALF, UNFOLD_HALF], shirt("left_side"))
     assert set(view.showing(SIDE_HALF)) == {SIDE_HALF, HIDDEN_SLEEVE}
 
 
