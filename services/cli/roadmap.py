@@ -27,6 +27,7 @@ def cmd_build_roadmap(args: argparse.Namespace) -> int:
         min_samples=None if min_samples is None else int(min_samples),
         eps_rule=args.eps_rule,
         matching=args.matching,
+        min_edge_weight=args.min_edge_weight,
     )
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
@@ -110,6 +111,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=["whitened", "metric"],
         help="how an image finds its node: whitened by the spread of images within nodes "
         "(default; the metric where too few images share a node), or in the metric, as the paper",
+    )
+    roadmap.add_argument(
+        "--min-edge-weight",
+        type=int,
+        default=1,
+        help="drop edges fewer action pairs support (default 1: keep every edge, as the paper)",
     )
     roadmap.add_argument("--out", required=True, type=Path)
     roadmap.set_defaults(handler=cmd_build_roadmap)

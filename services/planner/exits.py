@@ -5,7 +5,11 @@ half hides whether its sleeve is folded. From such a node one action leads to di
 depending on the state hidden behind it, and the data show this: one action (`Task.same_action`)
 leaving the node for several nodes. A path that came into the node from `a` came from the
 state that this action leads back to `a` from, so a path that goes on by that action to another
-node `c` takes a turn no chain of moves takes. The roadmap records each node's exits
+node `c` takes a turn no chain of moves takes. Likewise a path that came in by an action and
+leaves by the action the data show undoing it (from some node into this one by the first, and
+back by the second) is back where it came from, not at another node: this holds where the
+node that came in was split in two by the encoder (one state, two nodes, no image of one of
+them seen after the undoing action). The roadmap records each node's exits
 (`action_exits`, at build time) and its shortest paths avoid such turns (`forbidden_turns`,
 `memory_paths`). A path may still start at such a node by any of its exits: a plan is valid
 when it holds for some state showing the start's view (interface.md, "Views").
@@ -34,36 +38,55 @@ def action_exits(
 ) -> np.ndarray:
     """(X, 3) int64 rows (from node, to node, action class), sorted and unique: which action
     of the training tuples (`u[i]` where `a[i] == 1`) leads from each node to which. Classes
-    are numbered over the whole roadmap; two actions share one when `same_action` says so."""
-    classes: dict[int, list[tuple[np.ndarray, int]]] = {}  # node -> (first action, class)
+    are numbered over the whole roadmap, in order of first use; two actions share one when
+    `same_action` says so (the same move, wherever it is made)."""
+    firsts: list[np.ndarray] = []  # each class's first action
     rows: set[tuple[int, int, int]] = set()
-    count = 0
     for i in np.flatnonzero(np.asarray(a) == 1).tolist():
         start, end = int(point_node[2 * i]), int(point_node[2 * i + 1])
         if start < 0 or end < 0 or start == end:
             continue
-        seen = classes.setdefault(start, [])
-        k = next((k for first, k in seen if same_action(first, u[i])), None)
+        k = next((k for k, first in enumerate(firsts) if same_action(first, u[i])), None)
         if k is None:
-            k, count = count, count + 1
-            seen.append((u[i], k))
+            k = len(firsts)
+            firsts.append(u[i])
         rows.add((start, end, k))
     return np.array(sorted(rows), np.int64).reshape(-1, 3)
 
 
 def forbidden_turns(exits: np.ndarray, group: np.ndarray) -> Turns:
-    """The turns a -> b -> c no chain of moves takes, between twin groups (`group`): every
-    action the data show leading from b to c also leads from b back to a."""
-    out: dict[int, dict[int, set[int]]] = {}
+    """The turns a -> b -> c (a != c) no chain of moves takes, between twin groups (`group`):
+    every action leading from b to c also leads from b back to a, or undoes an action the data
+    show leading from a into b (undoing: some node x goes into b by the one and b back to x by
+    the other). The actions leading from b to a neighbour are those the data show, and the
+    undoings of those the data show leading from it into b."""
+    out: dict[int, dict[int, set[int]]] = {}  # b -> c -> the classes leading from b to c
+    into: dict[int, dict[int, set[int]]] = {}  # b -> a -> the classes leading from a to b
     for start, end, k in exits.tolist():
         b, c = int(group[start]), int(group[end])
         if b != c:
             out.setdefault(b, {}).setdefault(c, set()).add(k)
+            into.setdefault(c, {}).setdefault(b, set()).add(k)
     turns: Turns = {}
-    for b, to in out.items():
-        for a, back in to.items():
-            for c, onward in to.items():
-                if c != a and onward <= back:
+    for b in set(out) | set(into):
+        to, came = out.get(b, {}), into.get(b, {})
+        undoes = {(k, back) for x, ks in came.items() for k in ks for back in to.get(x, ())}
+        near = set(to) | set(came)
+        # the ways from b to each neighbour: seen, or the undoing of a way seen from it into b
+        leaving = {
+            c: to.get(c, set()) | {j for k, j in undoes if k in came.get(c, ())} for c in near
+        }
+        for a in near:
+            back, entered = leaving[a], came.get(a, set())
+            for c in near - {a}:
+                onward = leaving[c]
+                if not onward:
+                    continue
+                returns = onward <= back
+                undone = bool(entered) and all(
+                    any((k, j) in undoes for k in entered) for j in onward
+                )
+                if returns or undone:
                     turns.setdefault((a, b), set()).add(c)
     return turns
 

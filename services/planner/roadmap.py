@@ -87,6 +87,9 @@ class RoadmapConfig:
 
     matching "whitened" matches an image to the nearest node after whitening the latents by
     the spread of images within their nodes (see fit_whitening); "metric" in d, as the paper.
+
+    min_edge_weight drops edges fewer action pairs support (1, the paper's, keeps every one):
+    an edge one or two stray images make joins states no move joins.
     """
 
     metric: Metric = "l1"
@@ -94,6 +97,7 @@ class RoadmapConfig:
     min_samples: int | None = None  # prune regions with fewer members, then isolated nodes
     eps_rule: EpsilonRule = "stable"
     matching: Matching = "whitened"
+    min_edge_weight: int = 1
 
     def __post_init__(self) -> None:
         _check_metric(self.metric)
@@ -107,6 +111,9 @@ class RoadmapConfig:
             raise RoadmapError(f"w_eps must be a number, got {self.w_eps!r}")
         if not math.isfinite(self.w_eps):
             raise RoadmapError(f"w_eps must be finite, got {self.w_eps!r}")
+        weight = self.min_edge_weight
+        if isinstance(weight, bool) or not isinstance(weight, int) or weight < 1:
+            raise RoadmapError(f"min_edge_weight must be an integer >= 1, got {weight!r}")
         if self.min_samples is None:
             return
         if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, int):
@@ -252,7 +259,8 @@ def build_roadmap(
         typical = float(np.median(sizes[labels]))  # the region size of the typical point
         min_samples = max(1, int(_MIN_SAMPLES_FRACTION * typical))
     big = sizes >= min_samples
-    kept_edge = big[edges[:, 0]] & big[edges[:, 1]]
+    strong = weights >= config.min_edge_weight
+    kept_edge = big[edges[:, 0]] & big[edges[:, 1]] & strong
     linked = np.zeros(n_regions, dtype=bool)
     linked[edges[kept_edge].ravel()] = True
     kept = big & linked
@@ -275,6 +283,7 @@ def build_roadmap(
         "edge_weight_before_pruning": int(weights.sum()),
         "action_pairs_inside_one_region": int((~across).sum()),
         "regions_too_small": int((~big).sum()),
+        "edges_too_weak": int((~strong).sum()),
         "regions_isolated": int((big & ~linked).sum()),
         "nodes": int(kept.sum()),
         "edges": len(final_edges),
@@ -668,9 +677,12 @@ class Roadmap:
         meta = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
-            # "matching" only where it is not the metric: older readers know no such key
+            # "matching" only where it is not the metric, "min_edge_weight" where not 1: older
+            # readers know no such keys
             "config": {
-                k: v for k, v in asdict(self.config).items() if k != "matching" or v != "metric"
+                k: v
+                for k, v in asdict(self.config).items()
+                if (k, v) not in (("matching", "metric"), ("min_edge_weight", 1))
             },
             "epsilon": self.epsilon,
             "mu0": self.mu0,

@@ -36,6 +36,16 @@ def test_a_turn_is_forbidden_when_the_way_on_is_the_way_back():
     assert forbidden_turns(exits, np.array([0, 1, 0, 3])) == {}
 
 
+def test_a_turn_is_forbidden_when_the_way_on_undoes_the_way_in():
+    # one state split into nodes 0 and 2 by the encoder: both go into 1 by action 5, which
+    # action 6 undoes, but the data saw 1 -(6)-> 0 only; 1 -(7)-> 3 is another move
+    exits = np.array([[0, 1, 5], [2, 1, 5], [1, 0, 6], [1, 3, 7], [3, 1, 8]])
+    turns = forbidden_turns(exits, np.arange(4))
+    assert turns[(2, 1)] == {0}  # back where it came from, not at the other split node
+    assert 3 not in turns.get((0, 1), set()) and 3 not in turns.get((2, 1), set())
+    assert (3, 1) not in turns  # nothing seen undoes 8
+
+
 def plain(roadmap, s, t, banned=(), max_paths=100):
     indptr, indices = roadmap._neighbour_arrays()
     return memory_paths(indptr, indices, {}, s, t, banned, max_paths)

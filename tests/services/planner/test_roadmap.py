@@ -125,6 +125,23 @@ def test_build_epsilon_and_pruning_thresholds():
     assert roadmap.stats["regions_isolated"] == 1
 
 
+def test_edges_fewer_pairs_support_than_min_edge_weight_are_dropped(tmp_path):
+    z1, z2, a, _ = synthetic(seed=5)
+    config = RoadmapConfig(metric="l2", w_eps=0.5, min_samples=1, eps_rule="paper")
+    every = build_roadmap(z1, z2, a, config)
+    floor = int(np.sort(every.edge_weights)[len(every.edges) // 2])  # drops about half
+    strong = build_roadmap(z1, z2, a, replace(config, min_edge_weight=floor))
+    assert (strong.edge_weights >= floor).all() and len(strong.edges) < len(every.edges)
+    kept = {(a, b) for a, b in every.edges[every.edge_weights >= floor].tolist()}
+    assert len(kept) == len(strong.edges) == len(every.edges) - strong.stats["edges_too_weak"]
+    strong.save(tmp_path / "strong")
+    assert Roadmap.load(tmp_path / "strong").config.min_edge_weight == floor
+    every.save(tmp_path / "every")  # the paper's: no key, readable by code from before it
+    assert "min_edge_weight" not in (tmp_path / "every" / rm.JSON_NAME).read_text()
+    with pytest.raises(RoadmapError, match="min_edge_weight must be an integer >= 1"):
+        RoadmapConfig(min_edge_weight=0)
+
+
 def test_build_is_deterministic():
     z1, z2, a, _ = synthetic(seed=4)
     r1 = build_roadmap(z1, z2, a)
