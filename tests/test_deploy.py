@@ -20,7 +20,11 @@ MODEL_SERVICES = ("encoder", "planner", "apn", "sim")
 # Compose service name -> (service it runs, task whose model it mounts): four for each task.
 TASK_SERVICES = {
     f"{prefix}{name}": (name, task)
-    for prefix, task in (("", "box_stacking"), ("cloth-", "cloth_folding"))
+    for prefix, task in (
+        ("", "box_stacking"),
+        ("cloth-", "cloth_folding"),
+        ("tshirt-", "tshirt_folding"),
+    )
     for name in MODEL_SERVICES
 }
 SERVICES = (*MODEL_SERVICES, "gateway")
