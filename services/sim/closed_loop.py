@@ -127,11 +127,11 @@ def run_episode(
     `observer` is how the world's images reach the planner (services.sim.workcell.Observer;
     by default registered here). `record` gets every executed action as experience (the
     image planned from, the action, the image after), a refused one and each fresh look at an
-    unchanged scene as no-action pairs. A refused action ends the episode, since re-planning
-    from the unchanged scene would repeat it, unless the planner's `last_was_shortcut` says
-    the plan was a one-off try (TryShortcuts), which it will not give again. A step whose
-    action led elsewhere (the next plan does not start at the node it was meant to reach) is
-    given to every later plan of the task as a step to avoid.
+    unchanged scene as no-action pairs. A step whose action the world refused, or whose action
+    led elsewhere (the next plan does not start at the node it was meant to reach), is given
+    to every later plan of the task as a step to avoid; a plan that takes a refused step again
+    (no way left without it) ends the episode rather than repeat it. A refused one-off try
+    (the planner's `last_was_shortcut`: TryShortcuts, which will not give it again) is not.
     """
     # every image registered to the table frame, as a cell's are (here, or by the server)
     observer = observer or Observer(world)
@@ -157,7 +157,8 @@ def run_episode(
     last: np.ndarray | None = None  # the image seen after the last action
     expect: int | None = None  # the node the last step was meant to reach
     step: tuple[int, int] | None = None  # that step, from node to node
-    missed: list[tuple[int, int]] = []  # steps whose action led elsewhere
+    missed: list[tuple[int, int]] = []  # steps whose action led elsewhere or was refused
+    refused_steps: set[tuple[int, int]] = set()
     looks = world.task.view  # the goal is reached when the scene shows its view
     for _ in range(max_steps):
         if goal is not None and looks(state) == looks(goal):
@@ -188,6 +189,9 @@ def run_episode(
             episode.reason = "unreachable"
             break
         plan = most_confident(plans)
+        if tuple(plan.nodes[:2]) in refused_steps:  # no way left but a step the world refused
+            episode.reason = "illegal_action"
+            break
         episode.chosen.append(plan)
         if not plan.actions:  # the planner sees start and goal in one region
             episode.reason = "planner_at_goal"
@@ -208,8 +212,10 @@ def run_episode(
                     record(seen, None, after, state, state)
             if getattr(planner, "last_was_shortcut", False) is True:
                 continue
-            episode.reason = "illegal_action"
-            break
+            refused_steps.add((plan.nodes[0], plan.nodes[1]))
+            if (plan.nodes[0], plan.nodes[1]) not in missed:
+                missed.append((plan.nodes[0], plan.nodes[1]))  # no later plan of the task takes it
+            continue
         except WorldError as exc:
             episode.reason = f"physics: {exc}"
             break

@@ -337,6 +337,30 @@ def test_a_refused_action_ends_the_episode_unless_it_was_a_one_off_shortcut(worl
     assert trying.reason == "illegal_action" and trying.illegal_actions == 1
 
 
+def test_a_refused_step_is_avoided_and_a_later_plan_goes_round_it(world):
+    start = state(world, [["red", "green"], ["blue"], ["yellow"]])
+    goal = state(world, [["red"], ["blue"], ["yellow", "green"]])
+    illegal = Move(Cell(0, 0), Cell(1, 1))  # red from under green
+    oracle = OraclePlanner(world, goal)
+
+    class AvoidingPlanner:
+        def __init__(self):
+            self.avoided = []
+
+        def plan(self, image, goal_image, max_plans=8, expect=None, avoid=()):
+            self.avoided.append(tuple(avoid))
+            if (0, 1) in avoid:  # the honest way, by another node
+                (plan,) = oracle.plan(image, goal_image)
+                return [replace(plan, nodes=[0, 2][: len(plan.nodes)])]
+            return [VisualActionPlan([0, 1], [image, goal_image], [illegal], [1.0], [1])]
+
+    planner = AvoidingPlanner()
+    episode = run_episode(planner, world, start, goal, np.random.default_rng(0))
+    assert episode.success and episode.illegal_actions == 1 and len(episode.actions) == 1
+    assert planner.avoided == [(), ((0, 1),), ((0, 1),)][: len(planner.avoided)]
+    assert planner.avoided[1] == ((0, 1),)  # the refused step, given to the next plan
+
+
 def test_table3_pairs_each_tried_action_with_the_state_after_it(world):
     """A refused shortcut counts as one wrong transition; the steps after it stay aligned."""
     from services.sim.closed_loop import PlanJudge
