@@ -27,6 +27,8 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import shortest_path
 
+from shared.graphs import walks
+
 Turns = dict[tuple[int, int], set[int]]  # (from a, at b) -> nodes c that b must not lead on to
 
 
@@ -133,20 +135,5 @@ def memory_paths(
     def onward(p: int) -> list[int]:  # successors on a shortest path
         return [q for q in successors[p] if from_s[q] == from_s[p] + 1 and to_t[q] == to_t[p] - 1]
 
-    paths: list[list[int]] = []
-    path: list[int] = []  # the steps taken
-    stack = [iter(onward(source))]
-    while stack:  # depth-first, smallest node ids first: lexicographic order
-        q = next(stack[-1], None)
-        if q is None:
-            stack.pop()
-            if path:
-                path.pop()
-        elif q == sink:
-            paths.append([s, *(int(indices[p]) for p in path)])
-            if len(paths) == max_paths:
-                break
-        else:
-            path.append(q)
-            stack.append(iter(onward(q)))
-    return paths
+    found = walks(onward(source), onward, sink, max_paths)  # depth first: lexicographic
+    return [[s, *(int(indices[p]) for p in steps)] for steps in found]

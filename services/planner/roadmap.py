@@ -42,7 +42,7 @@ from services.planner.regions import (
     stable_epsilon,
 )
 from shared.checkpoint import replace_atomically, seal
-from shared.graphs import node_components, twin_groups
+from shared.graphs import node_components, twin_groups, walks
 
 __all__ = [
     "Metric",
@@ -619,22 +619,8 @@ class Roadmap:
             ok = (from_s[nbrs] == from_s[u] + 1) & (to_t[nbrs] == to_t[u] - 1)
             return nbrs[ok].tolist()
 
-        paths: list[list[int]] = []
-        path = [s]
-        stack = [iter(onward(s))]
-        while stack:  # depth-first, smallest ids first: lexicographic order
-            v = next(stack[-1], None)
-            if v is None:
-                stack.pop()
-                path.pop()
-            elif v == t:
-                paths.append([src_node, *path[1:], dst_node])
-                if len(paths) == max_paths:
-                    break
-            else:
-                path.append(v)
-                stack.append(iter(onward(v)))
-        return paths
+        found = walks(onward(s), onward, t, max_paths)  # smallest ids first: lexicographic
+        return [[src_node, *path, dst_node] for path in found]
 
     @property
     def turns(self) -> Turns:
