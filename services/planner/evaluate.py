@@ -158,6 +158,19 @@ class TransitionChecker:
                 return False
         return True
 
+    def _after(self, reach: set[Any], action: Any, target: Any = None) -> set[Any]:
+        """The states `action` legally leads to from those in `reach` (that look like
+        `target`, when given)."""
+        after = set()
+        for s in reach:
+            try:
+                n = self.task.apply(s, action)
+            except IllegalActionError:
+                continue
+            if target is None or self.same(n, target):
+                after.add(n)
+        return after
+
     def actions_lead(self, states: Sequence[Any], actions: Sequence[Any]) -> bool:
         """The actions, applied by the rules from some state looking like `states[0]`, pass
         through states looking like the rest (None, no action, never does)."""
@@ -165,18 +178,9 @@ class TransitionChecker:
             return False
         reach = set(self.showing(states[0]))
         for action, target in zip(actions, states[1:], strict=True):
-            k = self.key(target)
-            after = set()
-            for s in reach:
-                try:
-                    n = self.task.apply(s, action)
-                except IllegalActionError:
-                    continue
-                if self.key(n) == k:
-                    after.add(n)
-            if not after:
+            reach = self._after(reach, action, target)
+            if not reach:
                 return False
-            reach = after
         return True
 
     def reaches(self, start: Any, actions: Sequence[Any], goal: Any) -> bool:
@@ -184,13 +188,7 @@ class TransitionChecker:
         some state looking like `start`, are legal moves that end in one looking like `goal`."""
         reach = set(self.showing(start))
         for action in actions:
-            after = set()
-            for s in reach:
-                try:
-                    after.add(self.task.apply(s, action))
-                except IllegalActionError:
-                    continue
-            reach = after
+            reach = self._after(reach, action)
         return any(self.same(s, goal) for s in reach)
 
 
