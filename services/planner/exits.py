@@ -136,4 +136,4 @@ def memory_paths(
         return [q for q in successors[p] if from_s[q] == from_s[p] + 1 and to_t[q] == to_t[p] - 1]
 
     found = walks(onward(source), onward, sink, max_paths)  # depth first: lexicographic
-    return [[s, *(int(indices[p]) for p in steps)] for steps in found]
+    return [[s, *(int(indices[p]) for p in taken)] for taken in found]
