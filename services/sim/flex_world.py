@@ -297,21 +297,23 @@ class FlexWorld(World[Folds, ClothAction]):
         return {s: float(far(points, ref).mean()) for s, ref in self._references.items()}
 
     # ----- acting -----
-    # Whether each move starts from the settled cloth of the state read back (at a fresh pose
-    # within the reset noise), as a folding robot smooths the garment before it folds: layered
-    # flaps drift over a walk of moves until a later move fails (see the T-shirt world).
-    flatten_before_moves = False
+    # Whether each move ends with the cloth smoothed to the settled shape of the state it reads
+    # as (at a fresh pose within the reset noise), as a folding robot flattens the garment
+    # between folds: the move's physics decides the state, the smoothing only its look. Without
+    # it layered flaps drift over a walk of moves until a later move fails, and a state's images
+    # differ by how it was reached (the T-shirt world).
+    smooth_after_moves = False
 
     def execute(self, action: ClothAction, rng: np.random.Generator) -> Folds:
-        state = self.read_state()
-        self.task.check_action(state, action)  # raises before anything moves
-        if self.flatten_before_moves and self.reset(state, rng) != state:
-            raise WorldError(f"the smoothed cloth no longer reads as {state}")
+        self.task.check_action(self.read_state(), action)  # raises before anything moves
         try:
             self._carry(action)
         except InvalidActionError as exc:  # a legal move, but the cloth is not where it expects
             raise WorldError(f"the cloth has moved away from the move's pick: {exc}") from None
-        return self.read_state()
+        state = self.read_state()
+        if self.smooth_after_moves and self.reset(state, rng) != state:
+            raise WorldError(f"the smoothed cloth no longer reads as {state}")
+        return state
 
     def _timing(self, length: float, speed: float) -> np.ndarray:
         """Min-jerk progress (0..1] for each physics step of a move of `length` metres."""

@@ -52,7 +52,7 @@ class TshirtFoldingWorld(FlexWorld):
     share_of = "some part's vertices"
     # Walks of moves without it: 3 of 12 moves failed in one data-generation episode (a fold
     # from a state reached by two unfolds 75% off), against 1 in 160 moves from settled states.
-    flatten_before_moves = True
+    smooth_after_moves = True
 
     def __init__(
         self,
