@@ -62,6 +62,32 @@ def test_the_bottom_half_folds_over_both_sides(shirt):
     assert shirt.execute(fold, rng) == (*start, "bottom_half")
 
 
+def _off_reference_cm(shirt, state) -> float:
+    """95th percentile of the vertices' distance from the state's ideal shape, posed."""
+    points = shirt.vertices()
+    rotation, centroid, target = shirt.pose(points, state)
+    posed = (points[:, :2] - centroid) @ rotation + target
+    return 100 * float(np.percentile(np.linalg.norm(posed - shirt._references[state], axis=1), 95))
+
+
+def test_a_move_ends_smoothed_so_a_state_looks_the_same_however_reached(shirt):
+    rng = np.random.default_rng(5)
+    folded, unfolded = ("left_side", "right_side", "bottom_half"), ("left_side", "right_side")
+    unfold = shirt.task.moves["unfold", "bottom_half"].action
+    try:
+        shirt.smooth_after_moves = False
+        shirt.reset(folded, rng)
+        assert shirt.execute(shirt.demonstrated(unfold, rng), rng) == unfolded
+        assert _off_reference_cm(shirt, unfolded) > 1.0  # measured 2.9: the strips dragged
+    finally:
+        del shirt.smooth_after_moves  # the class's: on
+    shirt.reset(folded, rng)
+    assert shirt.execute(shirt.demonstrated(unfold, rng), rng) == unfolded
+    after_move = _off_reference_cm(shirt, unfolded)
+    shirt.reset(unfolded, rng)
+    assert after_move < 0.5 and after_move < 3 * _off_reference_cm(shirt, unfolded) + 0.1
+
+
 def test_an_illegal_action_leaves_the_shirt_as_it_was(shirt):
     rng = np.random.default_rng(4)
     shirt.reset(("left_side",), rng)
