@@ -43,6 +43,7 @@ from services.encoder.model import VAE
 from services.planner import versions
 from services.planner.build import LABELS
 from services.planner.evaluate import NodeLabels, label_nodes
+from services.planner.exits import action_exits
 from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, load_calibration, match, save_calibration
 from services.planner.members import MEMBERS, Members, tuple_keys
@@ -334,6 +335,10 @@ def grow(
         stats=stats,
         twins=twins,
         whitening=whitening_for(roadmap.config, everything.points, node),
+        # where actions lead, experience included: kept only by roadmaps built with exits
+        exits=action_exits(node, everything.a, everything.actions, task.same_action)
+        if len(roadmap.exits)
+        else roadmap.exits,
     )
     report["held"] = held - base // 2  # indices into the new tuples
     # Built nodes are known as before (recalibrating on what they let in would let the bounds

@@ -3,6 +3,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from services.planner.exits import action_exits
 from services.planner.grow import (
     contradictions,
     fresh_regions,
@@ -74,6 +75,18 @@ def test_growth_adds_the_edges_experience_shows_and_keeps_the_built_nodes():
     assert report["held_for_review"] == 1 and report["held"].tolist() == [2]
     assert report["new_nodes"] == 0  # two images far away are no state yet
     assert len(everything.points) == len(m.points) + 6 == len(grown.point_node)
+
+
+def test_a_roadmap_built_with_exits_keeps_them_for_experience_too():
+    roadmap, known, m = base(BASE)
+    experience = members([("B", "C", 3)], seed=1)
+    assert len(grow(roadmap, known, m, experience, TASK)[0].exits) == 0  # built without
+    exits = action_exits(roadmap.point_node, m.a, m.actions, TASK.same_action)
+    roadmap = replace(roadmap, exits=exits)
+    grown = grow(roadmap, known, m, experience, TASK)[0]
+    b, c = grown.point_node[-2:]
+    rows = sorted(map(tuple, grown.exits.tolist()))
+    assert rows == sorted([*map(tuple, exits.tolist()), (b, c, 2)])  # a third move, B to C
 
 
 def test_an_edge_contradicted_more_than_supported_is_flagged_and_kept():
