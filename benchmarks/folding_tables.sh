@@ -18,7 +18,7 @@ case $TASK in
   cloth_folding) DATA=${DATA:-data/cloth_folding} RUNS=${RUNS:-runs/cloth} TUPLES=2000 \
     SEEDS=(0 1 2) GEN="" TEST=test SHIFTED="" PAIRS=${PAIRS:-200} READER=1 \
     LOOP_SHIFTED=1 ;;
-  *) DATA=${DATA:-data/tshirt_camera} RUNS=${RUNS:-runs/tshirt} TUPLES=2400 \
+  *) DATA=${DATA:-data/tshirt_smooth} RUNS=${RUNS:-runs/tshirt} TUPLES=2400 \
     SEEDS=(40 41 42) GEN="--appearance camera --look-pairs 0.5" TEST=test_camera \
     SHIFTED=test_shifted PAIRS=${PAIRS:-100} READER=0 LOOP_SHIFTED=0 ;;
 esac
