@@ -85,16 +85,19 @@ def tables(runs: list[tuple[str, Path]], suffix: str) -> None:
             f"{stat(lambda e: e['same_move'], digits=1)} |"
         )
     print("\nTable III: closed loop in simulation, re-planning after every action (paper beside)\n")
-    print("| framework | tasks | system | transitions | VFM | APN | paper (5 goals x 5 runs) |")
+    print("| framework | tasks | system | transitions (as seen) | VFM | APN "
+          "| paper (5 goals x 5 runs) |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for metric, run in runs:
         t = read(run / f"table3{suffix}.json")
         if t and "table3" in t:
             r = t["table3"]
             paper = " / ".join(str(v) for v in PAPER_TABLE3.get(metric, ())) or "-"
+            seen = r.get("transitions_as_seen")  # results before it was measured lack it
+            seen = f" ({seen:.1f})" if seen is not None else ""
             print(
                 f"| F-{NAMES[metric]} | {t['pairs']} | {r['system']:.1f} | "
-                f"{r['transitions']:.1f} | {r['vfm']:.1f} | {r['apn']:.1f} | {paper} |"
+                f"{r['transitions']:.1f}{seen} | {r['vfm']:.1f} | {r['apn']:.1f} | {paper} |"
             )
     print()
 

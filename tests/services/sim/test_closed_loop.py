@@ -234,10 +234,37 @@ def test_table3_counts_right_plans_and_wrong_actions(world):
         return evaluate_system(planner, seeing, task, 4, seed=5, progress=False, judge=judge)
 
     honest = run(lie=False)["table3"]
-    assert honest == {"system": 100.0, "transitions": 100.0, "vfm": 100.0, "apn": 100.0}
+    assert honest == {
+        "system": 100.0,
+        "transitions": 100.0,
+        "transitions_as_seen": 100.0,
+        "vfm": 100.0,
+        "apn": 100.0,
+    }
     liar = run(lie=True)
     assert liar["table3"]["vfm"] == 100.0  # the visual plans are right ...
     assert liar["table3"]["apn"] < 100.0  # ... their first actions are not
+
+
+def test_a_step_as_seen_forgives_only_what_the_camera_could_not_see():
+    from services.sim.closed_loop import PlanJudge
+    from shared.tasks import get_task
+
+    task = get_task("tshirt_folding")
+
+    def folds(*names):
+        return task.parse_state({"folds": list(names)})
+
+    before = folds("left_sleeve", "left_side", "bottom_half")  # the sleeve under the half
+    judge = PlanJudge(task, [folds("left_side", "bottom_half"), folds("left_side")])
+    unfold = task.moves["unfold", "bottom_half"].action
+    plan = VisualActionPlan([0, 1], [], [unfold], [1.0], [1])
+    after = task.apply(before, unfold)  # the sleeve shows: folded, not as the plan guessed
+    assert not judge.checker.same(judge.node_states[1], after)
+    assert judge.step_as_seen(plan, before, after)
+    assert not judge.step_as_seen(plan, before, folds())  # the world did another thing
+    other = task.moves["unfold", "left_side"].action  # locked under the half: no such move
+    assert not judge.step_as_seen(replace(plan, actions=[other]), before, after)
 
 
 class WreckingWorld(SeeingWorld):
