@@ -237,4 +237,4 @@ def test_cloth_pipeline_evaluates_and_plans(tiny_cloth_model, tmp_path, capsys):
     with ClothFoldingWorld(image_size=32, lattice=7) as world:
         result = evaluate_system(planner, world, planner.task, 2, max_steps=3, judge=judge)
     assert sum(result["outcomes"].values()) == 2
-    assert set(result["table3"]) == {"system", "transitions", "vfm", "apn"}
+    assert set(result["table3"]) == {"system", "transitions", "transitions_as_seen", "vfm", "apn"}
