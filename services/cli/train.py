@@ -79,6 +79,7 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
         epochs=args.epochs,
         samples=args.samples,
         seed=args.seed,
+        restarts=args.restarts,
         device=args.device,
     )
     meta = train_apn(args.vae, args.data, args.out, cfg)
@@ -164,5 +165,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     apn.add_argument("--samples", type=int, default=1, help="S draws from q(z|I) per pair")
     apn.add_argument("--seed", type=int, default=0)
+    apn.add_argument(
+        "--restarts",
+        type=int,
+        default=1,
+        help="runs from fresh weights (seeds SEED, SEED+1, ...) on one validation split; "
+        "the lowest validation loss is kept",
+    )
     apn.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     apn.set_defaults(handler=cmd_train_apn)

@@ -14,6 +14,7 @@ from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.build import load_labels
 from services.planner.evaluate import TransitionChecker, action_leads
 from services.planner.knowing import load_calibration
+from services.planner.places import Places
 from services.planner.plan import VisualPlanner
 from services.planner.roadmap import Roadmap
 from services.planner.versions import roadmap_dir
@@ -41,7 +42,7 @@ class ActionPlanner:
         roadmap = Roadmap.load(folder)
         calibration = load_calibration(folder, roadmap)
         declare_model_task(config)
-        planner = VisualPlanner(vae, roadmap, calibration)
+        planner = VisualPlanner(vae, roadmap, calibration, Places.load(folder, roadmap))
         return cls(get_task(config["dataset"]["task"]), planner, apn)
 
     @property

@@ -14,6 +14,7 @@ from services.encoder.checkpoint import decode_latents, encode_images
 from services.encoder.model import VAE
 from services.planner import knowing
 from services.planner.knowing import Calibration
+from services.planner.places import Places
 from services.planner.roadmap import Roadmap
 from shared.plans import Match
 
@@ -31,10 +32,17 @@ class VisualPlanner:
     without one (unit tests of the search alone) every image counts as known.
     """
 
-    def __init__(self, vae: VAE, roadmap: Roadmap, calibration: Calibration | None = None) -> None:
+    def __init__(
+        self,
+        vae: VAE,
+        roadmap: Roadmap,
+        calibration: Calibration | None = None,
+        places: Places | None = None,
+    ) -> None:
         self.vae = vae
         self.roadmap = roadmap
         self.calibration = calibration
+        self.places = places  # where a closed loop went when it did not go as planned
         self._images: dict[int, np.ndarray] = {}
 
     def encode(self, images: np.ndarray) -> np.ndarray:
@@ -84,7 +92,7 @@ class VisualPlanner:
             if errors is None:
                 raise ValueError("a calibrated planner needs the images' reconstruction errors")
             _, start, goal = knowing.place_ends(
-                self.roadmap, self.calibration, z_start, z_goal, errors, expect
+                self.roadmap, self.calibration, z_start, z_goal, errors, expect, self.places
             )
         else:
             start, goal = (int(n) for n in self.roadmap.nearest_node(np.stack([z_start, z_goal])))

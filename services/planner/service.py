@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from services.planner.knowing import Calibration, load_calibration, place_ends
+from services.planner.places import Places
 from services.planner.roadmap import Roadmap
 from services.planner.versions import current_version, version_dir
 from services.runtime import ServiceContext
@@ -52,6 +53,7 @@ class Served:
     roadmap: Roadmap
     calibration: Calibration
     labels: tuple[list[Any], list[float]] | None
+    places: Places | None = None
 
     @classmethod
     def load(cls, model_dir: Path, require_sealed: bool = False, check: bool = True) -> Served:
@@ -64,7 +66,8 @@ class Served:
             log.warning("%s: not sealed: served unverified", folder)
         roadmap = Roadmap.load(folder)
         labels = node_labels(folder, roadmap.num_nodes)
-        return cls(version, roadmap, load_calibration(folder, roadmap), labels)
+        calibration = load_calibration(folder, roadmap)
+        return cls(version, roadmap, calibration, labels, Places.load(folder, roadmap))
 
 
 def watch_versions(
@@ -118,7 +121,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
             )
         try:
             matched, start, goal = place_ends(
-                roadmap, calibration, z_start, z_goal, errors, request.expect_node
+                roadmap, calibration, z_start, z_goal, errors, request.expect_node, now.places
             )
         except UnknownImageError as refused:
             return PathsReply(

@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -69,6 +70,21 @@ def test_training_in_steps_validates_every_pass_and_drops_lr(tiny_model, tmp_pat
     per_pass = -(-meta["pairs"]["train_samples"] // 16)
     assert [r["step"] for r in log] == sorted({*range(per_pass, 7, per_pass), 7})
     assert load_apn(tmp_path / "batches")[1]["train"]["steps"] == 7
+
+
+def test_restarts_share_one_split_and_keep_the_lowest_validation_loss(tiny_model, tmp_path):
+    model_dir, data = tiny_model
+    cfg = APNTrainConfig(steps=4, batch_size=1024, seed=3)
+    one = [train_apn(model_dir / "vae", data, tmp_path / f"s{s}", replace(cfg, seed=s),
+                     progress=False) for s in (3, 4)]  # fmt: skip
+    meta = train_apn(model_dir / "vae", data, tmp_path / "r", replace(cfg, restarts=2), False)
+    assert meta["pairs"] == one[0]["pairs"]
+    losses = meta["restarts"]["val_loss"]
+    assert losses[0] == pytest.approx(one[0]["best"]["val_loss"])  # seed 3 run alone
+    assert meta["best"]["val_loss"] == min(losses)
+    assert meta["restarts"]["kept_seed"] == 3 + losses.index(min(losses))
+    with pytest.raises(ValueError, match="restarts"):
+        APNTrainConfig(restarts=0)
 
 
 def test_train_load_evaluate(tiny_model):
