@@ -119,6 +119,7 @@ def train_apn(
     cfg: APNTrainConfig,
     progress: bool = True,
 ) -> dict[str, Any]:
+    torch.manual_seed(cfg.seed)  # before the VAE is built: the first run draws as it always did
     rng = np.random.default_rng(cfg.seed)
     data_dirs = [data_dir] if isinstance(data_dir, str | Path) else list(data_dir)
     spec, mu1, lv1, mu2, lv2, u = action_pair_latents(vae_dir, data_dirs)
@@ -183,9 +184,10 @@ def _fit(
     device: torch.device,
     progress: bool,
 ) -> tuple[dict[str, Any], dict[str, torch.Tensor], list[dict[str, Any]]]:
-    """One run from weights drawn with `seed`: its best validation record, those weights and
-    the validation log."""
-    torch.manual_seed(seed)
+    """One run from weights drawn with `seed` (the first run: as the torch generator stands):
+    its best validation record, those weights and the validation log."""
+    if seed != cfg.seed:
+        torch.manual_seed(seed)
     model = APN(config).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     total = cfg.total_steps(len(tr[2]))
