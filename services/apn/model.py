@@ -20,15 +20,10 @@ class APNConfig:
     head: Head = "classify"
     width: int = 64
     branch: int = 16
-    # Latents are multiplied by this before the first layer: their training spread brought to
-    # 1 (`--scale-inputs`), as the action term's L2 and Linf squeeze a latent 8-14x against L1.
-    input_scale: float = 1.0
 
     def __post_init__(self) -> None:
         if self.head not in ("classify", "regress", "hybrid"):
             raise ValueError(f"head must be classify, regress or hybrid, got {self.head!r}")
-        if not 0 < self.input_scale < float("inf"):
-            raise ValueError(f"input_scale must be positive and finite, got {self.input_scale}")
 
     @property
     def regressed(self) -> tuple[bool, ...]:
@@ -58,9 +53,8 @@ class APN(nn.Module):
         self.out = nn.Linear(config.branch, sum(self.widths))
 
     def forward(self, z1: torch.Tensor, z2: torch.Tensor) -> torch.Tensor:
-        scale = self.config.input_scale
-        h1 = F.relu(self.branch1(F.relu(self.shared(z1 * scale))))
-        h2 = F.relu(self.branch2(F.relu(self.shared(z2 * scale))))
+        h1 = F.relu(self.branch1(F.relu(self.shared(z1))))
+        h2 = F.relu(self.branch2(F.relu(self.shared(z2))))
         return self.out(F.relu(self.joint(torch.cat([h1, h2], dim=-1))))
 
     def loss(self, output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -49,7 +49,6 @@ class APNTrainConfig:
     # validation loss is kept. One T-shirt run in five learned moves wrong (76% named, against
     # 99-100%), and its validation loss said so (4.4e-4 against 5-7e-5).
     restarts: int = 1
-    scale_inputs: bool = False  # APNConfig.input_scale from the training split's latents
     device: str = "auto"  # auto: a CUDA device when present, else the CPU
 
     def __post_init__(self) -> None:
@@ -133,9 +132,7 @@ def train_apn(
     head = cfg.head or ("classify" if max(sizes) <= HYBRID_MAX_CLASSES else "hybrid")
     device = resolve_device(cfg.device)
     tr, va = tuple(t.to(device) for t in tr), tuple(t.to(device) for t in va)
-    means = np.concatenate([mu1[train], mu2[train]])
-    scale = 1.0 / float(np.sqrt(means.var(0).mean())) if cfg.scale_inputs else 1.0
-    config = APNConfig(latent_dim=mu1.shape[1], action_sizes=sizes, head=head, input_scale=scale)
+    config = APNConfig(latent_dim=mu1.shape[1], action_sizes=sizes, head=head)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()

@@ -80,7 +80,6 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
         samples=args.samples,
         seed=args.seed,
         restarts=args.restarts,
-        scale_inputs=args.scale_inputs,
         device=args.device,
     )
     meta = train_apn(args.vae, args.data, args.out, cfg)
@@ -172,11 +171,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=1,
         help="runs from fresh weights (seeds SEED, SEED+1, ...) on one validation split; "
         "the lowest validation loss is kept",
-    )
-    apn.add_argument(
-        "--scale-inputs",
-        action="store_true",
-        help="multiply latents by 1 / their training spread before the first layer",
     )
     apn.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     apn.set_defaults(handler=cmd_train_apn)

@@ -87,22 +87,6 @@ def test_restarts_share_one_split_and_keep_the_lowest_validation_loss(tiny_model
         APNTrainConfig(restarts=0)
 
 
-def test_scaled_inputs_see_latents_of_unit_spread(tiny_model, tmp_path):
-    model_dir, data = tiny_model
-    cfg = APNTrainConfig(steps=2, scale_inputs=True)
-    meta = train_apn(model_dir / "vae", data, tmp_path / "scaled", cfg, progress=False)
-    apn, _ = load_apn(tmp_path / "scaled")
-    scale = meta["model"]["input_scale"]
-    assert scale == apn.config.input_scale and scale != 1.0
-    plain = APN(replace(apn.config, input_scale=1.0))
-    plain.load_state_dict(apn.state_dict())
-    z1, z2 = torch.randn(3, 64), torch.randn(3, 64)
-    with torch.no_grad():
-        assert torch.allclose(apn(z1, z2), plain(z1 * scale, z2 * scale), atol=1e-5)
-    with pytest.raises(ValueError, match="input_scale"):
-        APNConfig(input_scale=0.0)
-
-
 def test_train_load_evaluate(tiny_model):
     model_dir, data = tiny_model
     apn, meta = load_apn(model_dir / "apn")
