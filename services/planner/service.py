@@ -53,7 +53,7 @@ class Served:
     roadmap: Roadmap
     calibration: Calibration
     labels: tuple[list[Any], list[float]] | None
-    places: Places | None = None
+    places: Places | None  # None for a model kept without its members
 
     @classmethod
     def load(cls, model_dir: Path, require_sealed: bool = False, check: bool = True) -> Served:

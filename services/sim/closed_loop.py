@@ -337,10 +337,11 @@ def evaluate_system(
                 episode.chosen, episode.states, episode.states[1:], episode.refused, strict=False
             )
             for plan, before, after, refused in tried:
-                right_transitions += not refused and judge.checker.same(
-                    judge.node_states[plan.nodes[1]], after
+                right = not refused and judge.checker.same(judge.node_states[plan.nodes[1]], after)
+                right_transitions += right
+                seen_transitions += right or (
+                    not refused and judge.step_as_seen(plan, before, after)
                 )
-                seen_transitions += not refused and judge.step_as_seen(plan, before, after)
     if record is not None:
         record.flush()
     attempted = executed + illegal
