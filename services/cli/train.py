@@ -1,4 +1,5 @@
-"""`lsr train`: the action-VAE, the state reader and the APN."""
+"""`lsr train`: a whole model from a dataset, or its parts (the action-VAE, the APN) and the
+state reader."""
 
 from __future__ import annotations
 
@@ -87,8 +88,55 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_model(args: argparse.Namespace) -> int:
+    from services.recipe import APN_RESTARTS, Recipe, train_model
+
+    recipe = Recipe(
+        metric=args.metric,
+        seed=args.seed,
+        device=args.device,
+        vae_steps=args.vae_steps,
+        eps_rule=args.eps_rule,
+        w_eps=args.w_eps,
+        min_samples=args.min_samples,
+        apn_steps=args.apn_steps,
+        apn_restarts=args.apn_restarts or APN_RESTARTS,
+    )
+    figures = train_model(args.data, args.out, recipe, overwrite=args.overwrite)
+    print(
+        f"{args.out}: {figures['nodes']} nodes, {figures['edges']} edges, epsilon "
+        f"{figures['epsilon']:.3g}, {100 * figures['known_training_images']:.2f}% of the "
+        f"training images known, {figures['seconds'] / 60:.1f} min; serve it with "
+        f"lsr up --model {args.out}"
+    )
+    if args.json:
+        print(json.dumps(figures))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train", help="train models").add_subparsers(dest="sub", required=True)
+    model = train.add_parser(
+        "model",
+        help="a whole model (VAE, roadmap, knowing, APN) from one dataset, every setting "
+        "chosen from the dataset",
+    )
+    model.add_argument("--data", required=True, type=Path, help="training dataset folder")
+    model.add_argument("--out", required=True, type=Path, help="model folder to write")
+    model.add_argument("--metric", default="l1", choices=["l1", "l2", "inf", "none"])
+    model.add_argument("--seed", type=int, default=0)
+    model.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    model.add_argument("--json", action="store_true", help="the figures as JSON, last line")
+    model.add_argument("--overwrite", action="store_true", help="replace a model already in OUT")
+    research = model.add_argument_group("research (never needed: chosen from the dataset)")
+    research.add_argument("--vae-steps", type=int)
+    research.add_argument("--eps-rule", choices=["stable", "paper"])
+    research.add_argument("--w-eps", type=float)
+    research.add_argument("--min-samples", type=int)
+    research.add_argument("--apn-steps", type=int)
+    research.add_argument("--apn-restarts", type=int, help="default 5")
+    model.set_defaults(handler=cmd_train_model)
+
     vae = train.add_parser("vae", help="train the action-VAE (metric none = baseline VAE-b)")
     vae.add_argument("--data", required=True, type=Path, help="training dataset folder")
     vae.add_argument("--metric", default="l1", choices=["l1", "l2", "inf", "none"])

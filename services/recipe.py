@@ -1,0 +1,227 @@
+"""`lsr train model`: one dataset folder to a model folder that `lsr up` serves.
+
+The step commands (`lsr train vae`, `lsr build-roadmap`, `lsr train apn`) leave every choice to
+their flags; a robot's owner should not have to know them. Here each setting is chosen from the
+dataset itself (its size, the task.json settings it declares, its action kind) and printed with
+the reason, and a flag remains for each only for research. The model is trained into a folder
+beside OUT and moved into place when it is whole, so that OUT never holds half a model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from services.apn.train import APNTrainConfig, train_apn
+from services.encoder.model import VAEConfig
+from services.encoder.train import DEFAULT_STEPS, Metric, TrainConfig, train_vae
+from services.planner.build import build_from_dataset
+from services.planner.roadmap import EpsilonRule, RoadmapConfig
+from shared.dataset import Dataset, DatasetError, load_dataset, publish
+
+# The fewest tuples of each kind a model can be trained from: the APN keeps a fifth of the
+# action pairs for validation, and epsilon is measured on the no-action pairs.
+MIN_ACTION_PAIRS = 10
+MIN_NO_ACTION_PAIRS = 2
+# VAE steps: at least DEFAULT_STEPS (a small dataset needs as many updates as a large one), and
+# at least this many passes over a large one (the shipped recipes' 30 epochs).
+MIN_EPOCHS = 30
+# APN runs from fresh weights, the lowest validation loss kept: one T-shirt run in five learned
+# moves wrong and its validation loss said so; a run is seconds beside the VAE's minutes.
+APN_RESTARTS = 5
+RECORD = "recipe.json"  # what was chosen and the figures, beside the model
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """What `lsr train model` may be told; None everywhere means: chosen from the dataset."""
+
+    metric: Metric = "l1"
+    seed: int = 0
+    device: str = "auto"
+    vae_steps: int | None = None
+    eps_rule: EpsilonRule | None = None
+    w_eps: float | None = None
+    min_samples: int | None = None
+    apn_steps: int | None = None
+    apn_restarts: int = APN_RESTARTS
+
+
+def check_trainable(data: Dataset, where: Path | str) -> None:
+    """DatasetError naming what makes a dataset unfit to train a model from."""
+    size = data.image_size
+    shapes = {data.image1.shape[1:], data.image2.shape[1:]}
+    if shapes != {(size, size, 3)}:
+        found = ", ".join("x".join(map(str, s)) for s in sorted(shapes))
+        raise DatasetError(
+            f"{where}: images must be {size} x {size} x 3 as the manifest says, got {found}"
+        )
+    try:
+        VAEConfig(image_size=size)
+    except ValueError as exc:
+        raise DatasetError(
+            f"{where}: {exc} (re-import or regenerate at 32, 64 or 128 px)"
+        ) from None
+    if data.spec.state is not None:
+        states = np.concatenate([data.state1, data.state2]).reshape(2 * len(data), -1)
+        if len(np.unique(states, axis=0)) < 2:
+            raise DatasetError(f"{where}: every image shows one state; a plan needs two or more")
+    moved, still = int((data.a == 1).sum()), int((data.a == 0).sum())
+    if moved < MIN_ACTION_PAIRS:
+        raise DatasetError(
+            f"{where}: {moved} action pairs; a model needs at least {MIN_ACTION_PAIRS} "
+            "(the roadmap's edges and the APN are learned from them)"
+        )
+    if still < MIN_NO_ACTION_PAIRS:
+        raise DatasetError(
+            f"{where}: {still} no-action pairs; a model needs at least {MIN_NO_ACTION_PAIRS} "
+            "(the roadmap's epsilon is measured on them: record a state twice, ideally under two "
+            "looks)"
+        )
+
+
+def vae_steps(pairs: int, batch_size: int = TrainConfig.batch_size) -> int:
+    """DEFAULT_STEPS, or MIN_EPOCHS passes over a dataset large enough to need more."""
+    return max(DEFAULT_STEPS, MIN_EPOCHS * math.ceil(pairs / batch_size))
+
+
+def choose(
+    data: Dataset, recipe: Recipe
+) -> tuple[TrainConfig, RoadmapConfig, APNTrainConfig, list[str]]:
+    """The three steps' settings for this dataset, and a line saying where each came from."""
+    settings = data.manifest.get("settings") or {}
+    why: list[str] = []
+
+    def pick(name: str, given: Any, declared: Any, default: Any, reason: str) -> Any:
+        if given is not None:
+            why.append(f"{name} {given}: given")
+            return given
+        if declared is not None:
+            why.append(f"{name} {declared}: the dataset's task.json settings")
+            return declared
+        why.append(f"{name} {default}: {reason}")
+        return default
+
+    steps = pick(
+        "vae steps",
+        recipe.vae_steps,
+        None,
+        vae_steps(len(data)),
+        f"{len(data)} tuples: max({DEFAULT_STEPS}, {MIN_EPOCHS} epochs)",
+    )
+    dm = settings.get("d_m")
+    if dm is not None:
+        why.append(f"d_m {dm}: the dataset's task.json settings")
+    vae = TrainConfig(
+        metric=recipe.metric, dm=dm, steps=int(steps), seed=recipe.seed, device=recipe.device
+    )
+    metric = "l1" if recipe.metric == "none" else recipe.metric
+    eps_rule = pick("epsilon rule", recipe.eps_rule, None, "stable", "the finest stable cut")
+    w_eps = pick("w_eps", recipe.w_eps, settings.get("w_eps"), 1.0, "Algorithm 1's fallback")
+    min_samples = pick(
+        "min_samples",
+        recipe.min_samples,
+        settings.get("min_samples"),
+        None,
+        "a tenth of the typical region",
+    )
+    roadmap = RoadmapConfig(
+        metric=metric,
+        eps_rule=eps_rule,
+        w_eps=float(w_eps),
+        min_samples=None if min_samples is None else int(min_samples),
+    )
+    apn = APNTrainConfig(
+        **({"steps": recipe.apn_steps} if recipe.apn_steps is not None else {}),
+        seed=recipe.seed,
+        restarts=recipe.apn_restarts,
+        device=recipe.device,
+    )
+    why.append(f"apn restarts {recipe.apn_restarts}: the lowest validation loss kept")
+    return vae, roadmap, apn, why
+
+
+def known_share(model_dir: Path) -> float:
+    """Share of the training images the served model knows (knowing's three terms)."""
+    from services.planner.knowing import load_calibration, ratios
+    from services.planner.members import Members
+    from services.planner.roadmap import Roadmap
+
+    folder = model_dir / "roadmap"
+    roadmap = Roadmap.load(folder)
+    members = Members.load(folder)
+    _, terms = ratios(roadmap, load_calibration(folder, roadmap), members.points, members.errors)
+    return float((terms.max(1) <= 1.0).mean())
+
+
+def train_model(
+    data_dir: Path | str,
+    out: Path | str,
+    recipe: Recipe | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Train VAE, roadmap (calibrated) and APN from `data_dir` into `out`; the figures."""
+    recipe = recipe or Recipe()
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise ValueError(f"{out}: exists and is not empty; choose another --out or --overwrite")
+    data = load_dataset(data_dir)
+    check_trainable(data, data_dir)
+    vae_cfg, roadmap_cfg, apn_cfg, why = choose(data, recipe)
+    counts = {"tuples": len(data), "action_pairs": int(data.a.sum())}
+    say(
+        f"{data.task}: {counts['tuples']} tuples ({counts['action_pairs']} action pairs), "
+        f"{data.image_size} px"
+    )
+    for line in why:
+        say(f"  {line}")
+    partial = out.with_name(out.name + ".partial")
+    if partial.exists():
+        shutil.rmtree(partial)
+    started = time.perf_counter()
+    try:
+        say(f"[1/3] VAE-{recipe.metric}, {vae_cfg.steps} steps")
+        final = train_vae(data_dir, partial / "vae", vae_cfg, progress=progress)
+        trained = time.perf_counter()
+        say("[2/3] roadmap (Algorithm 1) and what it knows")
+        built = build_from_dataset(partial / "vae", data_dir, roadmap_cfg, partial / "roadmap")
+        known = known_share(partial)
+        say("[3/3] APN")
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # a 7k-parameter MLP: a second thread only spin-waits
+        try:
+            apn = train_apn(partial / "vae", data_dir, partial / "apn", apn_cfg, progress=progress)
+        finally:
+            torch.set_num_threads(threads)
+        figures = {
+            "task": data.task,
+            **counts,
+            "nodes": built["nodes"],
+            "edges": built["edges"],
+            "epsilon": built["epsilon"],
+            "eps_rule": built["eps_rule"],
+            **{k: built[k] for k in ("mean_purity", "pure_nodes") if k in built},
+            "known_training_images": known,
+            "vae": {k: final.get(k) for k in ("noaction_max", "action_min", "gap")},
+            "apn_val_loss": apn["best"].get("val_loss"),
+            "seconds": time.perf_counter() - started,
+            "vae_seconds": trained - started,
+        }
+        record = {"data": str(data_dir), "chosen": why, "figures": figures}
+        (partial / RECORD).write_text(json.dumps(record, indent=2) + "\n")
+        publish(partial, out)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return figures
