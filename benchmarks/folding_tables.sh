@@ -26,10 +26,10 @@ esac
 [ -f $DATA/train/manifest.json ] || $LSR data generate --task $TASK --pairs $TUPLES \
   --seed ${SEEDS[0]} --size 64 $GEN --workers 2 --out $DATA/train
 [ -f $DATA/$TEST/manifest.json ] || $LSR data generate --task $TASK --pairs 500 \
-  --seed ${SEEDS[1]} --size 64 ${GEN%--look*} --workers 2 --out $DATA/$TEST
+  --seed ${SEEDS[1]} --size 64 ${GEN%--look*} --look-pairs 0 --workers 2 --out $DATA/$TEST
 if [ -n "$SHIFTED" ] && [ ! -f $DATA/$SHIFTED/manifest.json ]; then
   $LSR data generate --task $TASK --pairs 250 --seed ${SEEDS[2]} --size 64 --appearance shifted \
-    --workers 2 --out $DATA/$SHIFTED
+    --look-pairs 0 --workers 2 --out $DATA/$SHIFTED
 fi
 READ_ARGS=()
 if [ $READER = 1 ]; then

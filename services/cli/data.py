@@ -112,9 +112,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     gen.add_argument(
         "--look-pairs",
         type=float,
-        default=0.0,
+        default=None,
         help="share of no-action pairs whose second image is the same state under a fresh "
-        "look (lights, table, camera); default 0",
+        "look (lights, table, camera); default 0.5 where looks vary (camera, shifted), 0 at "
+        "clean",
     )
     gen.add_argument("--out", required=True, type=Path)
     gen.add_argument("--overwrite", action="store_true", help="replace an existing folder")

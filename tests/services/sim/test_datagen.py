@@ -5,6 +5,7 @@ import pytest
 
 from services.sim.appearance import AppearanceWorld
 from services.sim.datagen import (
+    LOOK_PAIRS,
     GenerateConfig,
     action_flags,
     balanced_starts,
@@ -235,3 +236,10 @@ def test_look_pairs_show_one_state_under_two_looks(tmp_path):
     assert np.median(shift) > 6.0  # 10.4 here; 2.9 for pairs within one look
     with pytest.raises(ValueError, match="look_pairs must be in"):
         GenerateConfig(look_pairs=1.5)
+
+
+def test_look_pairs_default_where_looks_vary():
+    assert GenerateConfig().look_pairs == 0.0  # clean: one look only
+    assert GenerateConfig(appearance="camera").look_pairs == LOOK_PAIRS
+    assert GenerateConfig(task="tshirt_folding").look_pairs == LOOK_PAIRS  # camera by default
+    assert GenerateConfig(appearance="camera", look_pairs=0.0).look_pairs == 0.0
