@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # The real check of tasks defined by their data (docs/own-data.md, "The real check"): export the
 # cloth-folding simulator's dataset as PNG + JSONL (states dropped), import it as a task named
-# cloth_recorded with the cloth model's settings in its task.json (d_m 13.5, w_eps 0.8, regions
-# under 6 pruned), train it with the shipped cloth model's budget (models/cloth_folding/REPORT.md:
-# VAE-L1 30 epochs, lr drop at 20, seed 0; APN 200 epochs, seed 0), evaluate it without state
-# labels, then judge its plans in the simulator, which it never saw, beside the built-in model.
+# cloth_recorded with the clean cloth model's settings in its task.json (d_m 13.5, w_eps 0.8,
+# regions under 6 pruned), train it with that model's budget (shipped until issue 38, at 975d8f2;
+# models/cloth_folding/REPORT.md, "Before issue 38": VAE-L1 30 epochs, lr drop at 20, seed 0; APN
+# 200 epochs, seed 0), evaluate it without state labels, then judge its plans in the simulator,
+# which it never saw, beside the built-in model (whatever models/cloth_folding now holds).
 # Usage: benchmarks/data_only_cloth.sh   (PAIRS=40 by default: the open-loop judge's pairs)
 set -euo pipefail
 cd "$(dirname "$0")/.."

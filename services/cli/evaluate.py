@@ -9,6 +9,7 @@ from pathlib import Path
 from services.cli.common import single_thread_torch
 from services.planner.versions import roadmap_dir
 from shared.appearance import LEVELS, levels_help
+from shared.settings import SHIPPED_MODEL
 
 
 def cmd_eval_vfm(args: argparse.Namespace) -> int:
@@ -139,7 +140,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     eapn.set_defaults(handler=cmd_eval_apn)
 
     system = evals.add_parser("system", help="closed-loop execution in simulation")
-    system.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    system.add_argument(
+        "--model",
+        type=Path,
+        default=SHIPPED_MODEL,
+        help="model folder (default: the shipped box-stacking model, wherever lsr is run from)",
+    )
     system.add_argument("--pairs", type=int, default=1000)
     system.add_argument("--seed", type=int, default=0)
     system.add_argument("--max-steps", type=int, default=20)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from services.cli.common import json_arg, single_thread_torch
+from shared.settings import SHIPPED_MODEL
 
 
 def _image_or_state(task, world, image: Path | None, state: str | None, rng, name: str):
@@ -115,7 +116,12 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     plan = sub.add_parser("plan", help="visual action plans from a start to a goal")
-    plan.add_argument("--model", type=Path, default=Path("models/box_stacking"))
+    plan.add_argument(
+        "--model",
+        type=Path,
+        default=SHIPPED_MODEL,
+        help="model folder (default: the shipped box-stacking model, wherever lsr is run from)",
+    )
     plan.add_argument("--start-state", help="state JSON, inline or a file path")
     plan.add_argument("--start-image", type=Path, help="PNG or JPEG of the start")
     plan.add_argument("--goal-state", help="state JSON, inline or a file path")

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import main
+from services.cli import build_parser, main
 from shared.dataset import load_dataset
 
 
@@ -87,6 +87,17 @@ def test_robot_refuses_an_id_that_is_not_one_key_chunk(capsys):
         main(["robot", "--robot-id", "arm/7", "--start-state", "{}", "--goal-state", "{}"])
     assert exit_info.value.code == 2
     assert "not one zenoh key chunk" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "command", [["plan", "--out", "plans"], ["eval", "system"]], ids=["plan", "eval system"]
+)
+def test_the_default_model_is_found_from_any_working_directory(command, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # not the repository's root: no models/ here
+    model = build_parser().parse_args(command).model
+    assert model.is_absolute()
+    assert model == Path(__file__).resolve().parents[2] / "models" / "box_stacking"
+    assert all((model / part).is_dir() for part in ("vae", "roadmap", "apn"))
 
 
 def test_eval_system_prints_table_three_for_the_shipped_model(capsys):
