@@ -1,0 +1,207 @@
+"""The data a cell must record: what `lsr train model` gives, with no flags, against the number of
+recorded tuples, beside the LSR family's published points.
+
+For each size: `lsr data generate` at the task's look (`camera` by default: registered camera
+frames, look pairs by default), `lsr train model`, then on unseen test data Table I with refusals
+counted (`lsr eval vfm`: `refusal_on`), the share of test images known, the APN
+(`lsr eval apn`) and the closed loop in simulation (`lsr eval system`). With `--explore N` the
+same model is grown by N of the arm's own actions (`lsr explore`) and measured again.
+Each size's record is kept in OUT/SIZE/record.json (delete it to redo); data seed = --seed +
+size + 100000 x training seed, so every point has data of its own. Prints a row per point,
+writes OUT/RESULTS.json and, with --figure, the curves.
+
+Usage:
+  python benchmarks/data_curves.py --task box_stacking --sizes 250 500 1000 2500 5000 \
+      --out runs/curves_box --figure docs/images/data_curves_box_stacking.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+LSR = [sys.executable, "-m", "services.cli"]
+# The LSR family's published points (../shared/reference/lsr-notes.md, "data budgets"):
+# (label, tuples, %), Table I's all-correct queries or closed-loop runs as each paper reports.
+FAMILY: dict[str, list[tuple[str, list[int], list[float]]]] = {
+    "box_stacking": [
+        ("LSR (paper): Table I All", [5000], [100.0]),
+        ("LSR-v2 normal stacking: all plans right", [2500], [100.0]),
+        ("ACE hard stacking: all plans right", [750, 1000, 1250], [51.5, 76.5, 82.6]),
+    ],
+    "tshirt_folding": [
+        ("LSR-v2 real shirt: runs folded", [1283], [96.0]),
+        ("ACE real shirt: runs folded", [575], [80.0]),
+        ("plain LSR, same data: runs folded", [575], [44.0]),
+        ("Ensemble LSR real shirt: runs folded", [562], [88.0]),
+    ],
+    "cloth_folding": [],
+}
+
+
+def _cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def lsr(args: list[str], times: dict[str, Any], name: str) -> dict[str, Any]:
+    """Run one `lsr` command; its last line as JSON; wall and CPU seconds into `times`."""
+    print(f"  {name}: lsr {' '.join(args)}", flush=True)
+    wall, cpu = time.perf_counter(), _cpu()
+    result = subprocess.run([*LSR, *args], cwd=ROOT, capture_output=True, text=True)
+    if result.returncode:
+        sys.exit(f"{name} failed:\n{result.stderr[-3000:]}")
+    times[name] = {"wall": time.perf_counter() - wall, "cpu": _cpu() - cpu}
+    lines = result.stdout.strip().splitlines()
+    return json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
+
+
+def measure(args: argparse.Namespace, model: Path, test: Path, times: dict[str, Any], tag: str):
+    """Table I with refusals counted, images known, APN and closed loop of one model."""
+    vfm = lsr(["eval", "vfm", "--model", str(model), "--test", str(test), "--pairs",
+               str(args.test_pairs), "--json"], times, f"eval_vfm{tag}")  # fmt: skip
+    out = {
+        "nodes": vfm["nodes"],
+        "edges": vfm["edges"],
+        "table1": [vfm["all"], vfm["any"], vfm["trans"]],
+        "table1_refusals_counted": [vfm["refusal_on"][k] for k in ("all", "any")]
+        if "refusal_on" in vfm
+        else None,
+        "known_images": vfm.get("known_images"),
+    }
+    apn = lsr(["eval", "apn", "--model", str(model), "--test", str(test), "--json"], times,
+              f"eval_apn{tag}")  # fmt: skip
+    out["apn_right"] = apn.get("same_move", apn.get("both"))
+    if args.closed_loop:
+        tasks = ["--pairs", str(args.closed_loop), "--seed", str(args.loop_seed)]
+        loop = lsr(["eval", "system", "--model", str(model), *tasks, "--json"], times,
+                   f"closed_loop{tag}")  # fmt: skip
+        out["closed_loop"] = loop.get("success")
+    return out
+
+
+def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> dict[str, Any]:
+    run = args.out / f"{pairs}" / f"seed{seed}"
+    path = run / "record.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    times: dict[str, Any] = {}
+    data, model = run / "train", run / "model"
+    data_seed = args.seed + pairs + 100000 * seed
+    if not (data / "manifest.json").exists():
+        lsr(["data", "generate", "--task", args.task, "--pairs", str(pairs), "--seed",
+             str(data_seed), "--appearance", args.appearance, "--overwrite", "--out", str(data)],
+            times, "generate")  # fmt: skip
+    if model.exists():
+        shutil.rmtree(model)
+    trained = lsr(["train", "model", "--data", str(data), "--out", str(model), "--seed",
+                   str(seed), "--json"], times, "train_model")  # fmt: skip
+    record: dict[str, Any] = {"tuples": pairs, "seed": seed, "data_seed": data_seed}
+    record["trained"] = trained
+    record["defaults"] = measure(args, model, test, times, "")
+    if args.explore:
+        grown = run / "explored"
+        shutil.copytree(model, grown, dirs_exist_ok=False)
+        lsr(["explore", "--model", str(grown), "--actions", str(args.explore), "--seed",
+             str(data_seed)], times, "explore")  # fmt: skip
+        record["explored"] = measure(args, grown, test, times, "_explored")
+    record["times"] = times
+    run.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    return record
+
+
+def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int | None = None):
+    """(sizes, the mean over training seeds of record[kind][key] (its [index]) at each)."""
+    sizes = sorted({r["tuples"] for r in points})
+    means = []
+    for size in sizes:
+        values = [r[kind].get(key) for r in points if r["tuples"] == size]
+        values = [v if index is None else v[index] for v in values if v is not None]
+        means.append(sum(values) / len(values) if values else float("nan"))
+    return sizes, means
+
+
+def plot(task: str, records: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    curves = (
+        ("table1_refusals_counted", 0, "o", "Table I All, refusals counted"),
+        ("known_images", None, "s", "% test images known"),
+        ("apn_right", None, "^", "APN right"),
+        ("closed_loop", None, "d", "closed loop"),
+    )
+    for kind, style in (("defaults", "-"), ("explored", "--")):
+        points = [r for r in records if kind in r]
+        suffix = "" if kind == "defaults" else f" + {kind}"
+        for key, index, marker, label in curves if points else ():
+            sizes, means = mean_by_size(points, kind, key, index)
+            ax.plot(sizes, means, marker + style, label=label + suffix)
+    for label, xs, ys in FAMILY.get(task, []):
+        ax.plot(xs, ys, "*", markersize=11, label=label)
+    ax.set_xscale("log")
+    ax.set_xlabel("recorded tuples")
+    ax.set_ylabel("%")
+    ax.set_ylim(0, 102)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"{task}: lsr train model with no flags, unseen camera data")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--task", default="box_stacking")
+    parser.add_argument("--sizes", type=int, nargs="+", required=True)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
+    parser.add_argument("--seed", type=int, default=470000, help="data seeds start here")
+    parser.add_argument("--appearance", default="camera")
+    parser.add_argument("--test", type=Path, help="unseen test data (default: generated)")
+    parser.add_argument("--test-pairs", type=int, default=1000)
+    parser.add_argument("--closed-loop", type=int, default=100, help="closed-loop tasks (0: none)")
+    parser.add_argument("--loop-seed", type=int, default=47)
+    parser.add_argument("--explore", type=int, default=0, help="explored actions (0: none)")
+    parser.add_argument("--out", type=Path, default=Path("runs/curves"))
+    parser.add_argument("--figure", type=Path)
+    args = parser.parse_args()
+    args.out = args.out.resolve()
+    test = args.test or args.out / "test"
+    if not (test / "manifest.json").exists():
+        lsr(["data", "generate", "--task", args.task, "--pairs", "1250", "--seed",
+             str(args.seed - 1), "--appearance", args.appearance, "--look-pairs", "0",
+             "--overwrite", "--out", str(test)], {}, "generate_test")  # fmt: skip
+    records = []
+    for pairs in args.sizes:
+        for seed in args.seeds:
+            print(f"{args.task}, {pairs} tuples, training seed {seed}", flush=True)
+            records.append(run_point(args, pairs, seed, test))
+            print(json.dumps({k: records[-1][k] for k in ("tuples", "seed", "defaults")}))
+    (args.out / "RESULTS.json").write_text(json.dumps(records, indent=1) + "\n")
+    print("tuples seed nodes  All(ref) known  apn%  loop%  train_min")
+    for r in records:
+        d = r["defaults"]
+        cells = [d["table1_refusals_counted"][0] if d["table1_refusals_counted"] else None,
+                 d["known_images"], d["apn_right"], d.get("closed_loop")]  # fmt: skip
+        text = " ".join("    -" if v is None else f"{v:5.1f}" for v in cells)
+        minutes = r["times"]["train_model"]["wall"] / 60
+        print(f"{r['tuples']:6d} {r['seed']:4d} {d['nodes']:5d} {text} {minutes:8.1f}")
+    if args.figure:
+        plot(args.task, records, args.figure)
+        print(f"figure: {args.figure}")
+
+
+if __name__ == "__main__":
+    main()
