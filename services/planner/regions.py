@@ -403,6 +403,8 @@ _GRID_RATIO = 2.0**0.25
 _STABLE_TOLERANCE = 0.01
 # The shortest stable range accepted, as the ratio of its ends.
 _STABLE_SPAN = 2.0
+# A flat range with fewer regions than this share of the finest flat range's groups states.
+_COARSEST = 0.5
 # The scan stops once more than this share of the action pairs falls inside one region.
 _MERGED_ACTIONS = 0.01
 
@@ -420,9 +422,14 @@ def stable_epsilon(
     geometric grid, the region count falls fast while states still split, stays flat while
     every region is one state, and falls again when states chain together. The scan stops
     where the regions start to swallow action pairs, whose two images show different states by
-    definition; of the flat ranges below that, the longest (at least a factor 2) is taken and
-    epsilon is its geometric middle: the farthest from both splitting and chaining. None when
-    no range is flat, for example in a latent space without structure; the caller falls back.
+    definition. Of the flat ranges below that (each at least a factor 2 long), the longest is
+    taken among those with at least _COARSEST of the finest one's regions, and epsilon is its
+    geometric middle: the farthest from both splitting and chaining. The bound on coarseness:
+    a partition into groups of states can be flat too where no move stays inside a group (box
+    stacking's 12 stack-height profiles: every move changes one), and with 1000 camera tuples
+    that range was the longer (issue 47: 12 nodes for 288 states); the pieces of split states
+    joining at most halve the count. None when no range is flat, for example in a latent space
+    without structure; the caller falls back.
     """
     d_still = pair_distances(points[2 * still], points[2 * still + 1], metric)
     d_moved = pair_distances(points[2 * moved], points[2 * moved + 1], metric)
@@ -443,18 +450,24 @@ def stable_epsilon(
             break
         counts.append(count)
     grid = info["grid"]
-    best: tuple[int, int] | None = None
-    for i in range(len(counts)):
+    flat: list[tuple[int, int]] = []  # the flat ranges, finest first, none inside another
+    i = 0
+    while i < len(counts):
         j = i
         while j + 1 < len(counts) and _flat(counts[i], counts[j + 1]):
             j += 1
-        long_enough = grid[j] / grid[i] >= _STABLE_SPAN * (1 - 1e-9)
-        if long_enough and (best is None or j - i > best[1] - best[0]):
-            best = (i, j)
-    if best is None:
+        if grid[j] / grid[i] >= _STABLE_SPAN * (1 - 1e-9):
+            flat.append((i, j))
+            i = j + 1
+        else:
+            i += 1
+    if not flat:
         return None, info
-    info["range"] = [grid[best[0]], grid[best[1]]]
-    return float(math.sqrt(grid[best[0]] * grid[best[1]])), info
+    finest = counts[flat[0][0]]
+    fine = [(i, j) for i, j in flat if counts[i] >= _COARSEST * finest]
+    i, j = max(fine, key=lambda r: r[1] - r[0])  # ties: the finer
+    info["range"] = [grid[i], grid[j]]
+    return float(math.sqrt(grid[i] * grid[j])), info
 
 
 def _flat(first: int, last: int) -> bool:

@@ -529,3 +529,21 @@ def test_twins_are_one_node_to_paths_and_supports(tmp_path):
     for joined in ([[0, 1]], [[0, 2], [1, 2]]):  # an edge inside a group, directly or by a chain
         with pytest.raises(RoadmapError, match=r"joined by an edge: edge \(0, 1\)"):
             replace(roadmap, twins=np.array(joined, np.int64))
+
+
+def test_the_stable_rule_takes_the_finest_flat_range_not_a_longer_coarse_one():
+    # 40 states in 4 groups far apart, every move from one group to the next: the 4 groups
+    # stay flat over a longer range of epsilon than the 40 states, and no action pair ever
+    # falls inside a group (box stacking's stack-height profiles). The states are the roadmap.
+    rng = np.random.default_rng(5)
+    groups = np.repeat(rng.normal(0.0, 1.0, size=(4, 8)) * 400, 10, axis=0)
+    centres = groups + rng.normal(0.0, 1.0, size=(40, 8)) * 3
+    order = np.arange(40)
+    nxt = (order + 10) % 40  # the same place in the next group
+    noise = np.eye(8)[0] * 0.3
+    z1 = np.r_[centres, centres, centres + noise]
+    z2 = np.r_[centres + noise, centres[nxt], centres]
+    a = np.r_[np.zeros(40), np.ones(40), np.zeros(40)].astype(np.int8)
+    roadmap = build_roadmap(z1, z2, a, RoadmapConfig(min_samples=1))
+    assert roadmap.stats["eps_rule"] == "stable"
+    assert roadmap.stats["regions_before_pruning"] == 40
