@@ -5,7 +5,9 @@ A camera that moves (a bumped tripod, a second cell) sees the table from another
 markers tell where the table is in every frame, so that `shared.registration` can bring the
 frame back to the one canonical view the models were trained on, as calibrated folding cells
 do. A `Workcell` is pure data (no MuJoCo, no OpenCV at import): tasks report it, datasets and
-imported `task.json` carry it, and `lsr workcell markers` prints it at true size.
+imported `task.json` carry it, `lsr workcell markers` prints it at true size (tiled on office
+paper by `shared.marker_sheets`), and its markers' places in millimetres relate the canonical
+view's pixels to the table (`Workcell.pixel_to_mm`), which is what a robot acts in.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 
 DICTIONARY = "DICT_4X4_50"  # 4 x 4 bits: the largest cells for a given marker size
 BORDER_CELLS = 1  # a marker is (bits + 2) cells a side: one black cell of border all round
+CELLS = 4 + 2 * BORDER_CELLS  # cells across a printed marker of DICTIONARY
 
 
 LAYOUTS = Path(__file__).parent / "tasks" / "workcells"  # one JSON per built-in task
@@ -134,6 +137,114 @@ class Workcell:
             black=_triple(obj.get("black", [0, 0, 0]), f"{where}.black"),
             white=_triple(obj.get("white", [255, 255, 255]), f"{where}.white"),
         )
+
+    def table_corners_mm(self) -> np.ndarray:
+        """(N, 4, 2) the markers' printed corners on the table (mm), in the order of
+        `corners()`: top-left, top-right, bottom-right, bottom-left, top towards +y."""
+        out = []
+        for m in self.markers:
+            (x, y), h = m.centre_mm, m.side_mm / 2
+            out.append([(x - h, y + h), (x + h, y + h), (x + h, y - h), (x - h, y - h)])
+        return np.array(out, dtype=np.float64)
+
+    def table_homography(self) -> np.ndarray:
+        """(3, 3) table millimetres (x, y) -> canonical pixels (x = column, y = row, pixel
+        centres at integers), fitted to every marker's corners: the markers lie on the table's
+        plane, and the canonical view is an image of that plane, so one homography relates
+        them. Exact for points on the table; a point above it (the top of a stack) maps to
+        where its line of sight meets the table, off by its height's parallax."""
+        if any(m.side_mm <= 0 for m in self.markers):
+            raise WorkcellError(
+                "markers: every marker needs centre_mm and side_mm (its place on the table) "
+                "to relate pixels to millimetres"
+            )
+        return _homography(self.table_corners_mm().reshape(-1, 2), self.corners().reshape(-1, 2))
+
+    def pixel_to_mm(self, row: float, col: float, frame: int | None = None) -> tuple[float, float]:
+        """The table point (x, y) in mm that the centre of pixel (row, col) of the registered
+        view shows, the pixel counted in a `frame` x `frame` image (an action's frame, say
+        task.json's `frame`; default this workcell's). What a robot needs to act on a plan:
+        the markers fix the table's plane, so only its table-to-base transform remains."""
+        scale = self.frame / (frame or self.frame)
+        u, v = (col + 0.5) * scale - 0.5, (row + 0.5) * scale - 0.5
+        x, y = _apply(np.linalg.inv(self.table_homography()), np.array([[u, v]]))[0]
+        return float(x), float(y)
+
+    def mm_to_pixel(self, x: float, y: float, frame: int | None = None) -> tuple[float, float]:
+        """The (row, col) of a `frame` x `frame` view (default this workcell's) at which the
+        table point (x, y) mm lies, as continuous pixel indices (round them for an action):
+        how a robot's recorded grasp becomes a pixel action."""
+        u, v = _apply(self.table_homography(), np.array([[x, y]], dtype=np.float64))[0]
+        scale = (frame or self.frame) / self.frame
+        return float((v + 0.5) * scale - 0.5), float((u + 0.5) * scale - 0.5)
+
+
+def rectangle_layout(
+    table_mm: tuple[float, float],
+    marker_mm: float,
+    inset_mm: float | None = None,
+    frame: int = 256,
+    dictionary: str = DICTIONARY,
+) -> Workcell:
+    """Markers for a cell without a simulator: a W x H rectangle of table (mm), one marker of
+    side `marker_mm` inside each corner (ids 0 far left, 1 far right, 2 near right, 3 near
+    left, as the built-in cells number theirs), its outer edges `inset_mm` from the
+    rectangle's edges (default one of its cells, a sixth of its side: the white margin the
+    detector wants round its black border). The table frame's origin is the rectangle's
+    centre, x to the right as the camera sees it, y away from the camera; the canonical view
+    looks straight down on the rectangle, its centre at the view's centre and
+    `frame / max(W, H)` pixels a millimetre (the same on both axes: a non-square rectangle
+    leaves bands of what lies beyond it)."""
+    width, height = (float(v) for v in table_mm)
+    side = float(marker_mm)
+    inset = side / CELLS if inset_mm is None else float(inset_mm)
+    if dictionary != DICTIONARY:
+        raise WorkcellError(f"dictionary: only {DICTIONARY} is supported")
+    if not (width > 0 and height > 0 and side > 0 and inset >= 0 and frame > 0):
+        raise WorkcellError("table and marker sizes must be positive, the inset not negative")
+    if 2 * (side + inset) >= min(width, height):
+        raise WorkcellError(
+            f"markers of {side:g} mm, {inset:g} mm from the edges, do not fit twice across "
+            f"the {min(width, height):g} mm side of the table: smaller markers or a larger table"
+        )
+    ppm = frame / max(width, height)  # pixels a millimetre
+    centre = (frame - 1) / 2  # pixel centres at integers: the view spans -0.5 .. frame - 0.5
+    off_x, off_y = width / 2 - inset - side / 2, height / 2 - inset - side / 2
+    places = [(-off_x, off_y), (off_x, off_y), (off_x, -off_y), (-off_x, -off_y)]
+    markers = []
+    for ident, (cx, cy) in enumerate(places):
+        h = side / 2
+        square = [(cx - h, cy + h), (cx + h, cy + h), (cx + h, cy - h), (cx - h, cy - h)]
+        corners = tuple((round(centre + ppm * x, 3), round(centre - ppm * y, 3)) for x, y in square)
+        markers.append(Marker(ident, (round(cx, 3), round(cy, 3)), round(side, 3), corners))
+    return Workcell(markers=tuple(markers), min_markers=3, frame=frame, dictionary=dictionary)
+
+
+def _homography(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The least-squares homography (normalised DLT) taking (N, 2) `source` to `target`."""
+
+    def normaliser(points: np.ndarray) -> np.ndarray:
+        mean = points.mean(axis=0)
+        spread = np.sqrt(((points - mean) ** 2).sum(axis=1).mean() / 2) or 1.0
+        return np.array([[1 / spread, 0, -mean[0] / spread], [0, 1 / spread, -mean[1] / spread],
+                         [0, 0, 1]])  # fmt: skip
+
+    a, b = normaliser(source), normaliser(target)
+    src, dst = _apply(a, source), _apply(b, target)
+    rows = []
+    for (x, y), (u, v) in zip(src, dst, strict=True):
+        rows.append([-x, -y, -1, 0, 0, 0, u * x, u * y, u])
+        rows.append([0, 0, 0, -x, -y, -1, v * x, v * y, v])
+    _, _, vt = np.linalg.svd(np.array(rows))
+    normalised = vt[-1].reshape(3, 3)
+    homography = np.linalg.inv(b) @ normalised @ a
+    return homography / homography[2, 2]
+
+
+def _apply(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2) points through a homography."""
+    lifted = np.column_stack([points, np.ones(len(points))]) @ homography.T
+    return lifted[:, :2] / lifted[:, 2:3]
 
 
 def _number(value: Any, where: str) -> float:

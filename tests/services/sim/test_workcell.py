@@ -196,3 +196,16 @@ def test_an_observer_gives_what_a_model_is_given(appearance, register):
         image = Observer(world, register=register).see()
     # views at the model's size; a client that leaves registration to its server sends frames
     assert image.shape == ((64, 64, 3) if register else (400, 400, 3))
+
+
+@pytest.mark.parametrize("task", ["cloth_folding", "tshirt_folding"])
+def test_the_workcell_s_pixels_in_mm_are_where_the_world_acts(task):
+    """`Workcell.pixel_to_mm`, from the markers alone, names the table point the folding
+    worlds grasp at for a pixel action (their own camera model), within 0.3 mm."""
+    from shared.tasks.folding import Pixel
+
+    with make_world(task, 64) as world:
+        workcell = world.task.workcell
+        for row, col in [(0, 0), (128, 128), (255, 0), (30, 200), (255, 255)]:
+            truth = 1000 * world.to_table(Pixel(row, col))[:2]
+            assert workcell.pixel_to_mm(row, col) == pytest.approx(tuple(truth), abs=0.3)
