@@ -125,7 +125,7 @@ def choose(
         metric=recipe.metric, dm=dm, steps=int(steps), seed=recipe.seed, device=recipe.device
     )
     metric = "l1" if recipe.metric == "none" else recipe.metric
-    eps_rule = pick("epsilon rule", recipe.eps_rule, None, "stable", "the finest stable cut")
+    eps_rule = pick("epsilon rule", recipe.eps_rule, None, "stable", "the stable cut")
     w_eps = pick("w_eps", recipe.w_eps, settings.get("w_eps"), 1.0, "Algorithm 1's fallback")
     min_samples = pick(
         "min_samples",
