@@ -119,11 +119,11 @@ def choose(
         f"{len(data)} tuples: max({DEFAULT_STEPS}, {MIN_EPOCHS} epochs)",
     )
     dm = settings.get("d_m")
-    if dm is not None:
-        why.append(f"d_m {dm}: the dataset's task.json settings")
     vae = TrainConfig(
         metric=recipe.metric, dm=dm, steps=int(steps), seed=recipe.seed, device=recipe.device
     )
+    source = "the dataset's task.json settings" if dm is not None else "the paper's for the task"
+    why.append(f"d_m {vae.d_m(data.task)}: {source}")
     metric = "l1" if recipe.metric == "none" else recipe.metric
     eps_rule = pick("epsilon rule", recipe.eps_rule, None, "stable", "the stable cut")
     w_eps = pick("w_eps", recipe.w_eps, settings.get("w_eps"), 1.0, "Algorithm 1's fallback")
