@@ -30,7 +30,7 @@ MAX_LOOKS = 5
 
 
 # No-action pairs across two looks where looks vary: every shipped camera model was trained
-# with this share (docs/tasks/box-stacking.md; issue 47 measures it against 0).
+# with this share (the models' REPORT.md); not yet measured against 0 at small data.
 LOOK_PAIRS = 0.5
 
 
