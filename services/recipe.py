@@ -150,19 +150,6 @@ def choose(
     return vae, roadmap, apn, why
 
 
-def known_share(model_dir: Path) -> float:
-    """Share of the training images the served model knows (knowing's three terms)."""
-    from services.planner.knowing import load_calibration, ratios
-    from services.planner.members import Members
-    from services.planner.roadmap import Roadmap
-
-    folder = model_dir / "roadmap"
-    roadmap = Roadmap.load(folder)
-    members = Members.load(folder)
-    _, terms = ratios(roadmap, load_calibration(folder, roadmap), members.points, members.errors)
-    return float((terms.max(1) <= 1.0).mean())
-
-
 def train_model(
     data_dir: Path | str,
     out: Path | str,
@@ -196,7 +183,6 @@ def train_model(
         trained = time.perf_counter()
         say("[2/3] roadmap (Algorithm 1) and what it knows")
         built = build_from_dataset(partial / "vae", data_dir, roadmap_cfg, partial / "roadmap")
-        known = known_share(partial)
         say("[3/3] APN")
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # a 7k-parameter MLP: a second thread only spin-waits
@@ -212,7 +198,7 @@ def train_model(
             "epsilon": built["epsilon"],
             "eps_rule": built["eps_rule"],
             **{k: built[k] for k in ("mean_purity", "pure_nodes") if k in built},
-            "known_training_images": known,
+            "known_training_images": built["known_training_images"],
             "vae": {k: final.get(k) for k in ("noaction_max", "action_min", "gap")},
             "apn_val_loss": apn["best"].get("val_loss"),
             "seconds": time.perf_counter() - started,

@@ -12,7 +12,7 @@ from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
 from services.planner.exits import action_exits
 from services.planner.knowing import FILE as MATCH_FILE
-from services.planner.knowing import Calibration, calibrate, save_calibration
+from services.planner.knowing import Calibration, calibrate, ratios, save_calibration
 from services.planner.members import MEMBERS, Members, interleave
 from services.planner.roadmap import ARRAYS_NAME, JSON_NAME, Roadmap, RoadmapConfig, build_roadmap
 from services.planner.versions import CURRENT, FIRST, current_version, roadmap_dir
@@ -59,6 +59,7 @@ def build_from_dataset(
     built = time.perf_counter()
     roadmap.save(out_dir)
     calibration = calibrate_and_seal(roadmap, members, out_dir)
+    _, terms = ratios(roadmap, calibration, members.points, members.errors)
     purity: dict[str, Any] = {}
     if data.spec.state is not None:  # node labels need the states the data declares
         task = get_task(data.task)
@@ -76,6 +77,7 @@ def build_from_dataset(
         "epsilon": roadmap.epsilon,
         **purity,
         "match_threshold": calibration.threshold,
+        "known_training_images": float((terms.max(1) <= 1.0).mean()),  # knowing's three terms
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,
         "forbidden_turns": sum(map(len, roadmap.turns.values())),
