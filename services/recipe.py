@@ -147,6 +147,9 @@ def choose(
         device=recipe.device,
     )
     why.append(f"apn restarts {recipe.apn_restarts}: the lowest validation loss kept")
+    if data.spec.undo:
+        swaps = ", ".join(" <-> ".join(pair) for pair in data.spec.undo)
+        why.append(f"apn undo: every pair also taught backwards ({swaps} undoes a move)")
     return vae, roadmap, apn, why
 
 

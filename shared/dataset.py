@@ -69,15 +69,19 @@ class Dataset:
 
 
 def manifest_spec(manifest: dict[str, Any]) -> TaskSpec:
-    """The dataset's declared arrays; the registered task's for manifests that predate specs."""
-    if "spec" not in manifest:
-        from shared.tasks import get_task
+    """The dataset's declared arrays; the registered task's for manifests that predate specs,
+    or that predate what a built-in task has since learned to declare (its `undo`)."""
+    from shared.tasks import get_task, has_simulator
 
+    if "spec" not in manifest:
         return get_task(manifest["task"]).spec
     try:
-        return TaskSpec.from_json(manifest["spec"])
+        spec = TaskSpec.from_json(manifest["spec"])
     except SpecError as exc:
         raise DatasetError(f"manifest.json: {exc}") from None
+    if not spec.undo and has_simulator(spec.task) and get_task(spec.task).spec == spec:
+        return get_task(spec.task).spec
+    return spec
 
 
 def validate_arrays(spec: TaskSpec, arrays: dict[str, np.ndarray]) -> None:

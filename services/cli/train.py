@@ -81,6 +81,7 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
         samples=args.samples,
         seed=args.seed,
         restarts=args.restarts,
+        undo=not args.no_undo,
         device=args.device,
     )
     meta = train_apn(args.vae, args.data, args.out, cfg)
@@ -219,6 +220,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=1,
         help="runs from fresh weights (seeds SEED, SEED+1, ...) on one validation split; "
         "the lowest validation loss is kept",
+    )
+    apn.add_argument(
+        "--no-undo",
+        action="store_true",
+        help="train on the demonstrated direction only, even where the task declares how a "
+        "move is undone (spec 'undo')",
     )
     apn.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     apn.set_defaults(handler=cmd_train_apn)

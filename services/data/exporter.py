@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,6 @@ from services.data.pairs import DataImportError
 from shared import dataset as ds
 from shared.images import encode_png
 from shared.tasks.declared import DataTask, TaskDeclaration
-from shared.tasks.spec import TaskSpec
 from shared.workcell import Workcell
 
 
@@ -70,7 +70,7 @@ def export_dataset(
     # takes them as they are, and the markers stay for the frames a camera adds later
     markers = Workcell.from_json(manifests[0].get("markers"))
     declaration = TaskDeclaration.of_spec(first, size, manifests[0].get("settings"), markers)
-    task = DataTask(TaskSpec(first.task, first.action, None))
+    task = DataTask(replace(first, state=None))
     partial = out.with_name(f".{out.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)
     counts: dict[str, int] = {}

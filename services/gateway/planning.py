@@ -7,6 +7,7 @@ import binascii
 import json
 import time
 import uuid
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -271,7 +272,7 @@ class Gateway:
         try:
             log = self._logs.get(task)
             if log is None or log.image_size != size:  # opened (and checked) once per model
-                spec = TaskSpec(logic.spec.task, logic.spec.action, None)
+                spec = replace(logic.spec, state=None)
                 log = self._logs[task] = ExperienceLog(folder, spec, size, source="robots")
             total = log.append(np.stack(before), np.stack(after), np.stack(actions))
         except (OSError, DatasetError) as exc:  # unwritable, full, or a damaged manifest

@@ -60,7 +60,6 @@ from shared.dataset import FIELDS, Dataset, load_dataset
 from shared.graphs import node_components
 from shared.tasks import get_task
 from shared.tasks.base import Task
-from shared.tasks.spec import TaskSpec
 
 REPORT = "growth.json"
 REVIEW = "review"
@@ -514,6 +513,6 @@ def _write_review(folder: Path, datasets: list[Dataset], held: np.ndarray, size:
             np.concatenate([getattr(d, f) for d in datasets])[held] for f in ("state1", "state2")
         )
     else:  # experience with and without states: the review keeps none
-        spec = TaskSpec(spec.task, spec.action, None)
+        spec = replace(spec, state=None)
     log = ExperienceLog(folder, spec, size, source="review")
     log.append(columns["image1"][held], columns["image2"][held], columns["u"][held], *states)

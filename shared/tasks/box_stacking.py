@@ -89,6 +89,8 @@ class BoxStacking(Task[Stacks, Move]):
                 counts=(len(c.boxes) + 1,) * len(cells),
                 start=-1,
             ),
+            # The moved box is the top of its new column and its old cell is free again
+            undo=(("pick.row", "release.row"), ("pick.col", "release.col")),
         )
 
     # ----- JSON codecs -----

@@ -127,12 +127,12 @@ class TaskDeclaration:
         if not isinstance(obj, dict):
             raise DeclarationError("expected a JSON object")
         unknown = sorted(
-            set(obj) - {"name", "image_size", "frame", "action", "settings", "markers"}
+            set(obj) - {"name", "image_size", "frame", "action", "undo", "settings", "markers"}
         )
         if unknown:
             raise DeclarationError(
                 f"unknown key {unknown[0]!r}; a task has name, image_size, frame, action, "
-                "settings, markers"
+                "undo, settings, markers"
             )
         name = obj.get("name")
         if not isinstance(name, str) or not _NAME.match(name):
@@ -186,7 +186,16 @@ class TaskDeclaration:
             markers = Workcell.from_json(obj.get("markers"))
         except WorkcellError as exc:
             raise DeclarationError(str(exc)) from None
-        return cls(TaskSpec(name, action, None), size, dict(settings), markers)
+        undo = obj.get("undo", [])
+        if not isinstance(undo, list) or not all(
+            isinstance(p, list) and all(isinstance(n, str) for n in p) for p in undo
+        ):
+            raise DeclarationError("undo: expected a list of [field, field] pairs")
+        try:
+            spec = TaskSpec(name, action, None, tuple(tuple(p) for p in undo))
+        except SpecError as exc:
+            raise DeclarationError(str(exc)) from None
+        return cls(spec, size, dict(settings), markers)
 
     @classmethod
     def of_spec(
@@ -197,7 +206,7 @@ class TaskDeclaration:
         markers: Workcell | None = None,
     ) -> TaskDeclaration:
         """The declaration of any dataset's actions (export writes it); its states are dropped."""
-        spec = TaskSpec(spec.task, spec.action, None)
+        spec = TaskSpec(spec.task, spec.action, None, spec.undo)
         return cls(spec, image_size, dict(settings or {}), markers)
 
     def to_json(self) -> dict[str, Any]:
@@ -225,6 +234,8 @@ class TaskDeclaration:
         if action.pixels:
             out["frame"] = action.frame
         out["action"] = fields
+        if self.spec.undo:
+            out["undo"] = [list(pair) for pair in self.spec.undo]
         if self.settings:
             out["settings"] = dict(self.settings)
         out["markers"] = None if self.markers is None else self.markers.to_json()

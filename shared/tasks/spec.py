@@ -169,21 +169,49 @@ class TaskSpec:
     task: str
     action: ArraySpec
     state: ArraySpec | None
+    # Action elements whose swap undoes a move (box stacking: pick <-> release puts the box
+    # back), so every demonstrated pair teaches the APN its reverse too. Empty: no such symmetry.
+    # Knowledge about the moves, not the arrays: specs compare equal without it, so data and
+    # experience recorded before a task declared it still match.
+    undo: tuple[tuple[str, str], ...] = field(default=(), compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "undo", tuple(tuple(pair) for pair in self.undo))
+        named = [name for pair in self.undo for name in pair]
+        if any(len(pair) != 2 for pair in self.undo) or len(set(named)) != len(named):
+            raise SpecError("spec.undo: pairs of distinct action elements, each named once")
+        unknown = sorted(set(named) - set(self.action.names))
+        if unknown:
+            raise SpecError(f"spec.undo: {unknown} are not action elements")
+
+    def undone(self, u: np.ndarray) -> np.ndarray:
+        """The actions (N, *shape) that undo `u`: its `undo` elements swapped."""
+        flat = u.reshape(len(u), -1).copy()
+        for a, b in self.undo:
+            i, j = self.action.names.index(a), self.action.names.index(b)
+            flat[:, [i, j]] = flat[:, [j, i]]
+        return flat.reshape(u.shape)
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out = {
             "task": self.task,
             "action": self.action.to_json(),
             "state": None if self.state is None else self.state.to_json(),
         }
+        if self.undo:
+            out["undo"] = [list(pair) for pair in self.undo]
+        return out
 
     @classmethod
     def from_json(cls, obj: Any) -> TaskSpec:
         if not isinstance(obj, dict) or not isinstance(obj.get("task"), str):
             raise SpecError("spec: expected an object with a 'task' name")
-        state = obj.get("state")
+        state, undo = obj.get("state"), obj.get("undo", [])
+        if not isinstance(undo, list) or not all(isinstance(p, list) for p in undo):
+            raise SpecError("spec.undo: expected a list of [element, element] pairs")
         return cls(
             task=obj["task"],
             action=ArraySpec.from_json(obj.get("action"), "spec.action"),
             state=None if state is None else ArraySpec.from_json(state, "spec.state"),
+            undo=tuple(tuple(pair) for pair in undo),
         )

@@ -92,7 +92,8 @@ def test_train_load_evaluate(tiny_model):
     apn, meta = load_apn(model_dir / "apn")
     assert meta["format"] == "lsr-apn" and meta["pairs"]["val"] >= 1
     assert verify(model_dir / "apn")  # written atomically and sealed
-    assert meta["pairs"]["train_samples"] == 2 * meta["pairs"]["train"]  # means + S = 1 draw
+    # means + S = 1 draw, of every pair and its reverse (box stacking declares its undo)
+    assert meta["train"]["undo"] and meta["pairs"]["train_samples"] == 4 * meta["pairs"]["train"]
     lines = (model_dir / "apn" / "log.jsonl").read_text().splitlines()
     assert [json.loads(x)["epoch"] for x in lines] == [1, 2, 3]
     actions, confidences = propose(apn, np.zeros((2, 64), np.float32), np.ones((2, 64), np.float32))
@@ -102,6 +103,16 @@ def test_train_load_evaluate(tiny_model):
     # an action that is exactly right leads to the pair's view (and a few right ones may be
     # right by another cell of the same stack)
     assert result["both"] <= result["leads_to_view"] <= 100
+
+
+def test_undo_teaches_the_reverse_of_every_pair(tiny_model, tmp_path):
+    model_dir, data = tiny_model
+    cfg = APNTrainConfig(steps=2, batch_size=1024, samples=0)
+    with_undo = train_apn(model_dir / "vae", data, tmp_path / "undo", cfg, progress=False)
+    without = train_apn(model_dir / "vae", data, tmp_path / "one", replace(cfg, undo=False), False)
+    assert with_undo["pairs"]["train_samples"] == 2 * with_undo["pairs"]["train"]
+    assert without["pairs"]["train_samples"] == without["pairs"]["train"]
+    assert not without["train"]["undo"]
 
 
 def test_load_error(tmp_path):

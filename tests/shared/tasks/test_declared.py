@@ -104,6 +104,9 @@ def test_a_data_task_has_no_states_rules_or_world():
         ({"settings": {"d_m": -1}}, r"settings\.d_m: must be positive"),
         ({"settings": {"min_samples": 2.5}}, r"settings\.min_samples: expected an integer"),
         ({"settings": {"lr": 1}}, "settings: unknown key 'lr'"),
+        ({"undo": [["pick.row", "nope"]]}, r"spec\.undo: \['nope'\] are not action elements"),
+        ({"undo": [["pick.row", "pick.col", "turn"]]}, "pairs of distinct action elements"),
+        ({"undo": "pick.row"}, r"undo: expected a list of \[field, field\] pairs"),
     ],
 )  # fmt: skip
 def test_bad_declarations_name_the_key(change, message):
@@ -126,3 +129,13 @@ def test_declared_tasks_join_the_registry():
         declare_task(other.spec)
     # A built-in task's spec gives the built-in task, rules and all.
     assert declare_task(get_task("cloth_folding").spec) is get_task("cloth_folding")
+
+
+def test_a_declared_undo_survives_json_and_export():
+    task = {**TASK, "undo": [["pick.row", "pick.col"]]}
+    declaration = TaskDeclaration.from_json(task)
+    assert declaration.spec.undo == (("pick.row", "pick.col"),)
+    assert TaskDeclaration.from_json(declaration.to_json()).spec.undo == declaration.spec.undo
+    assert TaskSpec.from_json(declaration.spec.to_json()).undo == declaration.spec.undo
+    assert TaskDeclaration.of_spec(declaration.spec, 64).spec.undo == declaration.spec.undo
+    assert "undo" not in TaskDeclaration.from_json(TASK).to_json()  # none declared, none written

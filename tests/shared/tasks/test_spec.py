@@ -47,6 +47,35 @@ def test_every_registered_task_spec_round_trips_through_json():
     for name in task_names():
         spec = get_task(name).spec
         assert TaskSpec.from_json(spec.to_json()) == spec
+        assert TaskSpec.from_json(spec.to_json()).undo == spec.undo  # equality ignores it
+
+
+def test_a_declared_undo_is_true_by_the_rules():
+    """Every legal move from every state, then its undoing action, gives the state back."""
+    declared = [name for name in task_names() if get_task(name).spec.undo]
+    assert "box_stacking" in declared
+    for name in declared:
+        task = get_task(name)
+        for state in task.all_states():
+            for action in task.legal_actions(state):
+                u = task.action_to_array(action)[None]
+                undo = task.array_to_action(task.spec.undone(u)[0])
+                assert task.apply(task.apply(state, action), undo) == state
+
+
+def test_undo_swaps_elements_and_is_not_part_of_equality():
+    spec = get_task("box_stacking").spec
+    u = np.array([[0, 1, 2, 0], [-1, -1, -1, -1]], np.int8)
+    assert spec.undone(u).tolist() == [[2, 0, 0, 1], [-1, -1, -1, -1]]
+    assert u.tolist()[0] == [0, 1, 2, 0]  # a copy, not in place
+    bare = TaskSpec(spec.task, spec.action, spec.state)
+    assert bare == spec and not bare.undo  # data recorded before the declaration still matches
+    with pytest.raises(SpecError, match=r"spec\.undo: \['x'\] are not action elements"):
+        TaskSpec(spec.task, spec.action, None, (("pick.row", "x"),))
+    with pytest.raises(SpecError, match="each named once"):
+        TaskSpec(spec.task, spec.action, None, (("pick.row", "release.row"),) * 2)
+    with pytest.raises(SpecError, match="list of"):
+        TaskSpec.from_json({**spec.to_json(), "undo": "pick.row"})
 
 
 def test_task_codecs_produce_what_the_spec_declares():
@@ -66,3 +95,13 @@ def test_spec_json_errors_name_the_part():
         TaskSpec.from_json({"task": "x", "action": {"shape": [1]}, "state": None})
     with pytest.raises(SpecError, match="'task'"):
         TaskSpec.from_json([])
+
+
+def test_data_recorded_before_a_builtin_task_declared_undo_gets_it():
+    from shared.dataset import manifest_spec
+
+    spec = get_task("box_stacking").spec
+    old = {k: v for k, v in spec.to_json().items() if k != "undo"}
+    assert manifest_spec({"task": "box_stacking", "spec": old}).undo == spec.undo
+    declared = {**old, "task": "towel_like"}  # a data-only task keeps what its data declare
+    assert manifest_spec({"task": "towel_like", "spec": declared}).undo == ()
