@@ -407,6 +407,12 @@ _STABLE_SPAN = 2.0
 _COARSEST = 0.5
 # The scan stops once more than this share of the action pairs falls inside one region.
 _MERGED_ACTIONS = 0.01
+# ... or once, with this share of the no-action pairs inside one region, regions holding at least
+# _WHOLE of the typical region's images (and _MIN_WHOLE) each make up half of a step's joins:
+# whole states chaining. Below _MIN_WHOLE images a region says too little about its state.
+_STILL_JOINED = 0.99
+_WHOLE = 0.5
+_MIN_WHOLE = 3
 
 
 def stable_epsilon(
@@ -422,14 +428,20 @@ def stable_epsilon(
     geometric grid, the region count falls fast while states still split, stays flat while
     every region is one state, and falls again when states chain together. The scan stops
     where the regions start to swallow action pairs, whose two images show different states by
-    definition. Of the flat ranges below that (each at least a factor 2 long), the longest is
-    taken among those with at least _COARSEST of the finest one's regions, and epsilon is its
-    geometric middle: the farthest from both splitting and chaining. The bound on coarseness:
-    a partition into groups of states can be flat too where no move stays inside a group (box
-    stacking's 12 stack-height profiles: every move changes one), and with 1000 camera tuples
-    that range was the longer (issue 47: 12 nodes for 288 states); the pieces of split states
-    joining at most halve the count. None when no range is flat, for example in a latent space
-    without structure; the caller falls back.
+    definition, or where whole regions join each other: once the no-action pairs lie inside
+    regions, a step whose joins are mostly of two regions each holding half the typical
+    region's images or more is states chaining, not the last pieces of a state coming home
+    (those are small, and many join in a step). Of the flat ranges below that (each at least a
+    factor 2 long), the longest is taken among those with at least _COARSEST of the finest
+    one's regions, and epsilon is its geometric middle: the farthest from both splitting and
+    chaining. The bound on coarseness: a partition into groups of states can be flat too where
+    no move stays inside a group (box stacking's 12 stack-height profiles: every move changes
+    one), and with 1000 camera tuples that range was the longer (issue 47: 12 nodes for 288
+    states); the pieces of split states joining at most halve the count. Where states chain
+    before any range is flat (300 T-shirt tuples: two of 25 views join one step after the last
+    pieces do), epsilon is the geometric middle of the range from where the no-action pairs
+    are joined to the last step before the chaining. None when no range is found, for example
+    in a latent space without structure; the caller falls back.
     """
     d_still = pair_distances(points[2 * still], points[2 * still + 1], metric)
     d_moved = pair_distances(points[2 * moved], points[2 * moved + 1], metric)
@@ -440,6 +452,7 @@ def stable_epsilon(
         return None, info
     steps = math.floor(math.log(hi / lo) / math.log(_GRID_RATIO)) + 1
     counts: list[int] = []
+    previous: np.ndarray | None = None
     for eps in lo * _GRID_RATIO ** np.arange(steps):
         labels = connected_regions(points, float(eps), metric)[0]
         merged = float(np.mean(labels[2 * moved] == labels[2 * moved + 1])) if len(moved) else 0.0
@@ -447,8 +460,16 @@ def stable_epsilon(
         info["grid"].append(float(eps))
         info["regions"].append(count)
         if merged > _MERGED_ACTIONS or count == 1:
+            info["stop"] = "action pairs inside regions"
             break
+        if "joined" in info and previous is not None and _whole_regions_join(previous, labels):
+            info["stop"] = "whole regions join"
+            break
+        joined = np.mean(labels[2 * still] == labels[2 * still + 1]) if len(still) else 0.0
+        if "joined" not in info and joined >= _STILL_JOINED:
+            info["joined"] = float(eps)
         counts.append(count)
+        previous = labels
     grid = info["grid"]
     flat: list[tuple[int, int]] = []  # the flat ranges, finest first, none inside another
     i = 0
@@ -461,13 +482,33 @@ def stable_epsilon(
             i = j + 1
         else:
             i += 1
-    if not flat:
+    if flat:
+        finest = counts[flat[0][0]]
+        fine = [(i, j) for i, j in flat if counts[i] >= _COARSEST * finest]
+        i, j = max(fine, key=lambda r: r[1] - r[0])  # ties: the finer
+        info["range"] = [grid[i], grid[j]]
+    elif info.get("stop") == "whole regions join" and info["joined"] <= grid[len(counts) - 1]:
+        info["range"] = [info["joined"], grid[len(counts) - 1]]
+    else:
         return None, info
-    finest = counts[flat[0][0]]
-    fine = [(i, j) for i, j in flat if counts[i] >= _COARSEST * finest]
-    i, j = max(fine, key=lambda r: r[1] - r[0])  # ties: the finer
-    info["range"] = [grid[i], grid[j]]
-    return float(math.sqrt(grid[i] * grid[j])), info
+    low, high = info["range"]
+    return float(math.sqrt(low * high)), info
+
+
+def _whole_regions_join(before: np.ndarray, after: np.ndarray) -> bool:
+    """Whether half or more of the joins from one cut to the next are of regions that each
+    hold at least _WHOLE of the typical region's images (the median over images of their
+    region's size, after the step) and at least _MIN_WHOLE."""
+    fall = int(before.max()) - int(after.max())
+    if fall <= 0:
+        return False
+    typical = float(np.median(np.bincount(after)[after]))
+    pieces = np.unique(after.astype(np.int64) * (int(before.max()) + 1) + before)
+    region, piece = np.divmod(pieces, int(before.max()) + 1)
+    whole = np.bincount(before)[piece] >= max(_MIN_WHOLE, _WHOLE * typical)
+    per_region = np.bincount(region, weights=whole)
+    joins = int(np.maximum(per_region - 1, 0).sum())
+    return joins > 0 and joins >= 0.5 * fall
 
 
 def _flat(first: int, last: int) -> bool:

@@ -141,6 +141,33 @@ def test_stable_epsilon_recovers_sparse_classes():
     assert split.max() + 1 > 30
 
 
+def test_stable_epsilon_stops_where_whole_states_chain():
+    """Two of 12 states lie closer than the rest (a VAE from little data): they join soon after
+    each state's last pieces do, before any range is flat, and no action pair says so; the
+    scan stops at that join and epsilon lies between it and the joined no-action pairs."""
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        centres = rng.normal(size=(12, 4)) * 30.0
+        centres[1] = centres[0] + [2.0, 0, 0, 0]
+        labels = np.repeat(np.arange(12), 20)
+        points = centres[labels] + rng.uniform(0, 1, size=(240, 4)) * [0.5, 1, 1, 1]
+        order = rng.permutation(240)
+        points, labels = points[order], labels[order]
+        first, second = labels[0::2], labels[1::2]
+        pairs = np.arange(120)
+        close = np.minimum(first, second) + np.maximum(first, second) == 1  # states 0 and 1
+        eps, info = stable_epsilon(
+            points, pairs[first == second], pairs[~close & (first != second)], "l1"
+        )
+        assert info["stop"] == "whole regions join"
+        assert info["joined"] <= eps <= info["grid"][-2]
+        found, _ = connected_regions(points, eps, "l1")
+        assert found.max() + 1 == 12
+        assert all(len(np.unique(labels[found == r])) == 1 for r in range(12))
+        # past the stop, a long flat range of 11 regions: the two states as one
+        assert connected_regions(points, 4 * eps, "l1")[0].max() + 1 == 11
+
+
 def test_stable_epsilon_gives_up_without_structure():
     rng = np.random.default_rng(1)
     points = rng.uniform(size=(200, 3))  # no classes: the region count never levels off
