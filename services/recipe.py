@@ -190,7 +190,9 @@ def train_model(
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # a 7k-parameter MLP: a second thread only spin-waits
         try:
-            apn = train_apn(partial / "vae", data_dir, partial / "apn", apn_cfg, progress=progress)
+            apn = train_apn(
+                partial / "vae", data_dir, partial / "apn", apn_cfg, progress, partial / "roadmap"
+            )
         finally:
             torch.set_num_threads(threads)
         figures = {

@@ -115,13 +115,36 @@ def _enlarge(mu1, lv1, mu2, lv2, u, samples: int, rng: np.random.Generator):
     )
 
 
+def roadmap_node_pairs(roadmap_dir: Path | str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every action pair the roadmap holds whose images lie in two nodes: the two nodes'
+    latents and the pair's action. A plan asks the APN about exactly these latents."""
+    from services.planner.members import Members
+    from services.planner.roadmap import Roadmap
+
+    roadmap = Roadmap.load(roadmap_dir)
+    members = Members.load(Path(roadmap_dir))
+    if len(members.points) != len(roadmap.point_node):
+        raise ValueError(f"{roadmap_dir}: its members and roadmap disagree; rebuild it")
+    act = np.flatnonzero(members.a == 1)
+    first, second = roadmap.point_node[2 * act], roadmap.point_node[2 * act + 1]
+    kept = (first >= 0) & (second >= 0) & (first != second)
+    nodes = roadmap.nodes.astype(np.float32)
+    u = members.actions[act[kept]].reshape(int(kept.sum()), -1).astype(np.int64)
+    return nodes[first[kept]], nodes[second[kept]], u
+
+
 def train_apn(
     vae_dir: Path | str,
     data_dir: Path | str | Sequence[Path | str],
     out_dir: Path | str,
     cfg: APNTrainConfig,
     progress: bool = True,
+    roadmap_dir: Path | str | None = None,
 ) -> dict[str, Any]:
+    """The APN on the action pairs of the data; with `roadmap_dir` (a roadmap built on the same
+    VAE) its training split also holds every demonstrated edge as the nodes' latents: a plan
+    asks about those, and a few hundred tuples teach the T-shirt's moves from them far better
+    (same move on unseen pairs 69 -> 89%, issue 47). Validation stays on images alone."""
     torch.manual_seed(cfg.seed)  # before the VAE is built: the first run draws as it always did
     rng = np.random.default_rng(cfg.seed)
     data_dirs = [data_dir] if isinstance(data_dir, str | Path) else list(data_dir)
@@ -131,14 +154,26 @@ def train_apn(
     val, train = order[:n_val], order[n_val:]  # split pairs first: no pair on both sides
     undo = cfg.undo and bool(spec.undo)
 
-    def side(i: np.ndarray) -> tuple[torch.Tensor, ...]:
-        parts = [(mu1[i], lv1[i], mu2[i], lv2[i], u[i])]
-        if undo:
-            parts.append((mu2[i], lv2[i], mu1[i], lv1[i], spec.undone(u[i])))
-        both = [np.concatenate(column) for column in zip(*parts, strict=True)]
-        return _enlarge(*both, cfg.samples, rng)
+    def both_ways(*pair: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+        z1, v1, z2, v2, action = pair
+        return [pair] + ([(z2, v2, z1, v1, spec.undone(action))] if undo else [])
 
-    tr, va = side(train), side(val)
+    Parts = Sequence[tuple[np.ndarray, ...]]
+
+    def side(i: np.ndarray, extra: Parts = ()) -> tuple[torch.Tensor, ...]:
+        parts = both_ways(mu1[i], lv1[i], mu2[i], lv2[i], u[i]) + list(extra)
+        joined = [np.concatenate(column) for column in zip(*parts, strict=True)]
+        return _enlarge(*joined, cfg.samples, rng)
+
+    nodes: list[tuple[np.ndarray, ...]] = []
+    if roadmap_dir is not None:
+        n1, n2, nu = roadmap_node_pairs(roadmap_dir)
+        if n1.shape[1] != mu1.shape[1]:
+            raise ValueError(f"{roadmap_dir}: {n1.shape[1]}-d nodes, the VAE's latents are "
+                             f"{mu1.shape[1]}-d: a roadmap of another VAE")  # fmt: skip
+        exact = np.full_like(n1, -80.0)  # log-variance: the draws are the nodes themselves
+        nodes = both_ways(n1, exact, n2, exact, nu.reshape(len(nu), *u.shape[1:]))
+    tr, va = side(train, nodes), side(val)
 
     sizes = spec.action.counts
     head = cfg.head or ("classify" if max(sizes) <= HYBRID_MAX_CLASSES else "hybrid")
@@ -164,6 +199,8 @@ def train_apn(
         "experience": [str(d) for d in data_dirs[1:]],
         "task": spec.task,
         "pairs": {"train": len(train), "val": len(val), "train_samples": len(tr[2])},
+        "roadmap": None if roadmap_dir is None else str(roadmap_dir),
+        "node_pairs": len(nodes[0][0]) if nodes else 0,
         # The training split's action statistics after scaling to [0, 1]: Table II standardises
         # test errors with them, as the paper does.
         "action_scaled": {

@@ -84,7 +84,7 @@ def cmd_train_apn(args: argparse.Namespace) -> int:
         undo=not args.no_undo,
         device=args.device,
     )
-    meta = train_apn(args.vae, args.data, args.out, cfg)
+    meta = train_apn(args.vae, args.data, args.out, cfg, roadmap_dir=args.roadmap)
     print(json.dumps({"best": meta["best"], "pairs": meta["pairs"], "seconds": meta["seconds"]}))
     return 0
 
@@ -196,6 +196,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="training dataset, then any experience folders whose action pairs it learns too",
     )
     apn.add_argument("--out", required=True, type=Path)
+    apn.add_argument(
+        "--roadmap",
+        type=Path,
+        help="a roadmap built on this VAE (lsr build-roadmap --out): its demonstrated edges, as "
+        "the nodes' latents plans ask about, join the training split (lsr train model does so)",
+    )
     apn.add_argument(
         "--head",
         default=None,

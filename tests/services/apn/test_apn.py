@@ -12,9 +12,11 @@ from services.apn.train import (
     evaluate_apn,
     load_apn,
     propose,
+    roadmap_node_pairs,
     train_apn,
 )
 from services.cli import main
+from services.planner.roadmap import Roadmap
 from shared.checkpoint import verify
 
 
@@ -113,6 +115,26 @@ def test_undo_teaches_the_reverse_of_every_pair(tiny_model, tmp_path):
     assert with_undo["pairs"]["train_samples"] == 2 * with_undo["pairs"]["train"]
     assert without["pairs"]["train_samples"] == without["pairs"]["train"]
     assert not without["train"]["undo"]
+
+
+def test_the_roadmaps_edges_join_the_training_split_only(tiny_model, tmp_path):
+    model_dir, data = tiny_model
+    cfg = APNTrainConfig(steps=2, batch_size=1024, samples=0)
+    n1, n2, u = roadmap_node_pairs(model_dir / "roadmap")
+    roadmap = Roadmap.load(model_dir / "roadmap")
+    assert len(u) > 0 and u.shape[1] == 4 and (u >= 0).all()  # action pairs only
+    nodes = {tuple(z) for z in roadmap.nodes.astype(np.float32)}
+    assert all(tuple(z) in nodes for z in np.concatenate([n1, n2]))  # the latents plans ask about
+    plain = train_apn(model_dir / "vae", data, tmp_path / "plain", cfg, progress=False)
+    meta = train_apn(model_dir / "vae", data, tmp_path / "rm", cfg, False, model_dir / "roadmap")
+    assert meta["node_pairs"] == len(u) and plain["node_pairs"] == 0
+    # each edge both ways (box stacking declares its undo); validation as before
+    assert meta["pairs"]["train_samples"] == plain["pairs"]["train_samples"] + 2 * len(u)
+    assert meta["best"]["val_loss"] != plain["best"]["val_loss"]  # it trained on them
+    assert main(["train", "apn", "--vae", str(model_dir / "vae"), "--data", str(data),
+                 "--roadmap", str(model_dir / "roadmap"), "--steps", "1",
+                 "--out", str(tmp_path / "cli")]) == 0  # fmt: skip
+    assert load_apn(tmp_path / "cli")[1]["node_pairs"] == len(u)
 
 
 def test_load_error(tmp_path):
