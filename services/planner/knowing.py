@@ -49,7 +49,13 @@ FACTOR = 2.0
 PATCHES = 4  # a patch is this fraction of the frame's side, moved by half a patch
 BATCH = 250  # images a pass: small enough to stay in the cache
 _THREADS = threading.Lock()  # look_many switches torch's thread count
-MIN_MEMBERS = 20  # a node with fewer training images takes the pooled distance quantile
+# A node's own distance quantile needs this many training images; with fewer (a few hundred
+# tuples: 11-37 a node) the 0.999 quantile is the sample's maximum, and 0.6-0.7% of unseen
+# images of the node's own state lay past twice it (cloth, T-shirt at 300 tuples, issue 47).
+# Such a node takes its median distance times the pooled 0.999 quantile of distance / median
+# (its own scale, every image's tail); with under SCALE_MEMBERS, the pooled distance quantile.
+MIN_MEMBERS = 100
+SCALE_MEMBERS = 5
 
 
 class MatchError(ValueError):
@@ -163,10 +169,16 @@ def calibrate(
     at, recon_at, patch_at = (
         float(np.quantile(x, quantile)) for x in (gaps, errors[:, 0], errors[:, 1])
     )
-    per_node = []
-    for node in range(roadmap.num_nodes):
-        mine = gaps[nodes == node]
-        per_node.append(factor * (np.quantile(mine, quantile) if len(mine) >= MIN_MEMBERS else at))
+    per_node = [factor * at] * roadmap.num_nodes
+    sizes = np.bincount(nodes, minlength=roadmap.num_nodes)
+    scale = np.array([np.median(gaps[nodes == k]) if n else 0.0 for k, n in enumerate(sizes)])
+    scaled = (sizes[nodes] >= SCALE_MEMBERS) & (scale[nodes] > 0)
+    shape = float(np.quantile(gaps[scaled] / scale[nodes[scaled]], quantile)) if scaled.any() else 0
+    for node, size in enumerate(sizes):
+        if size >= MIN_MEMBERS:
+            per_node[node] = factor * float(np.quantile(gaps[nodes == node], quantile))
+        elif size >= SCALE_MEMBERS and scale[node] > 0:
+            per_node[node] = factor * float(scale[node]) * shape
     return Calibration(
         node_thresholds=tuple(float(t) for t in per_node),
         threshold=factor * at,
