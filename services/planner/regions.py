@@ -439,9 +439,9 @@ def stable_epsilon(
     one), and with 1000 camera tuples that range was the longer (issue 47: 12 nodes for 288
     states); the pieces of split states joining at most halve the count. Where states chain
     before any range is flat (300 T-shirt tuples: two of 25 views join one step after the last
-    pieces do), epsilon is the geometric middle of the range from where the no-action pairs
-    are joined to the last step before the chaining. None when no range is found, for example
-    in a latent space without structure; the caller falls back.
+    pieces do), epsilon is the last step before the chaining: the no-action pairs joined, the
+    most pieces of states joined, no two states. None when no range is found, for example in a
+    latent space without structure; the caller falls back.
     """
     d_still = pair_distances(points[2 * still], points[2 * still + 1], metric)
     d_moved = pair_distances(points[2 * moved], points[2 * moved + 1], metric)
@@ -488,7 +488,7 @@ def stable_epsilon(
         i, j = max(fine, key=lambda r: r[1] - r[0])  # ties: the finer
         info["range"] = [grid[i], grid[j]]
     elif info.get("stop") == "whole regions join" and info["joined"] <= grid[len(counts) - 1]:
-        info["range"] = [info["joined"], grid[len(counts) - 1]]
+        info["range"] = [grid[len(counts) - 1]] * 2  # the last cut before states chain
     else:
         return None, info
     low, high = info["range"]
