@@ -54,6 +54,12 @@ def cmd_data_import(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
     )
     result = import_dataset(cfg)
+    if result["registered"]:
+        print(
+            f"registered {result['registered']} of {result['images']} images to the table "
+            f"frame with task.json's markers, {result['image_size']} px; sizes found: "
+            f"{result['image_sizes']}"
+        )
     if result["resized"]:
         print(
             f"resized {result['resized']} of {result['images']} images to "

@@ -62,8 +62,9 @@ class Checked:
     rows: int = 0
     action_pairs: int = 0
     images: int = 0  # distinct image files
-    resized: int = 0  # of them, not of the declared size (resized)
-    cropped: int = 0  # of them, not square (centre-cropped first: the aspect is kept)
+    registered: int = 0  # of them, camera frames registered to the table frame (markers)
+    resized: int = 0  # of them, without markers: not of the declared size (resized)
+    cropped: int = 0  # of those, not square (centre-cropped first: the aspect is kept)
     sizes: Counter = field(default_factory=Counter)
     episodes: dict[str, int] = field(default_factory=dict)  # name -> index, first-seen order
     row_episode: list[int] = field(default_factory=list)  # per row: its episode's index
@@ -178,9 +179,11 @@ def check(cfg: ImportConfig, progress: bool = True) -> Checked:
                         load_image(path, size, found.registration)
                     except ImageError as exc:
                         refused.append(f"{where}: {key}: {relative}: {exc}")
+                    found.registered += 1
+                else:
+                    found.resized += (w, h) != (size, size)
+                    found.cropped += w != h
                 found.sizes[f"{w}x{h}"] += 1
-                found.resized += (w, h) != (size, size)
-                found.cropped += w != h
                 checked_images.add(path)
             paths.append(path)
         if row.action is not None:
@@ -273,6 +276,7 @@ def import_dataset(cfg: ImportConfig, progress: bool = True) -> dict[str, Any]:
         "action_pairs": found.action_pairs,
         "images": found.images,
         "image_sizes": dict(found.sizes),
+        "registered": found.registered,
         "resized": found.resized,
         "cropped": found.cropped,
         "image_size": found.declaration.image_size,

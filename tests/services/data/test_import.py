@@ -293,7 +293,8 @@ def test_frames_are_registered_to_the_table_frame_with_task_json_s_markers(tmp_p
 
     source, workcell = _frames_folder(tmp_path / "rec")
     config = ImportConfig(source=source, out=tmp_path / "out", name="framed", test_fraction=0)
-    import_dataset(config, progress=False)
+    result = import_dataset(config, progress=False)
+    assert result["registered"] == result["images"] and result["cropped"] == 0  # not cropped
     data = load_dataset(tmp_path / "out" / "train")
     assert data.image1.shape == (4, 32, 32, 3)
     assert data.manifest["markers"] == workcell.to_json()
