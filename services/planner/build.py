@@ -52,9 +52,11 @@ def build_from_dataset(
     model, _ = load_vae(vae_dir)
     members = Members.encode(model, data)
     encoded = time.perf_counter()
+    declared = declare_task(data.spec)
+    config = replace(config, one_way=not declared.spec.undo)  # the APN knows no other way
     roadmap = build_roadmap(members.points[0::2], members.points[1::2], data.a, config)
     # where each node's actions lead: memory for nodes that stand for look-alike states
-    same = declare_task(data.spec).same_action
+    same = declared.same_action
     roadmap = replace(roadmap, exits=action_exits(roadmap.point_node, data.a, data.u, same))
     built = time.perf_counter()
     roadmap.save(out_dir)
@@ -81,6 +83,8 @@ def build_from_dataset(
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,
         "forbidden_turns": sum(map(len, roadmap.turns.values())),
+        "one_way": config.one_way,
+        "unshown_steps": len(roadmap.unshown),  # edges' directions no action pair took
         **{k: v for k, v in roadmap.stats.items() if not isinstance(v, dict)},
     }
 

@@ -75,6 +75,10 @@ _ARRAY_KEYS = ("nodes", "node_sizes", "edges", "edge_weights", "point_node")
 _OPTIONAL_KEYS = ("twins", "whitening", "exits")
 
 
+# config values roadmap.json leaves out: readers from before these keys know none of them
+_UNSAID_DEFAULTS = (("matching", "metric"), ("min_edge_weight", 1), ("one_way", False))
+
+
 @dataclass(frozen=True)
 class RoadmapConfig:
     """How to build a roadmap: the metric d, how epsilon is chosen, and the pruning threshold.
@@ -90,6 +94,10 @@ class RoadmapConfig:
 
     min_edge_weight drops edges fewer action pairs support (1, the paper's, keeps every one):
     an edge one or two stray images make joins states no move joins.
+
+    one_way (set where the task declares no undo, TaskSpec.undo): an edge is known only the
+    way its action pairs went, so paths take it the other way only where nothing else reaches
+    the goal; the APN has never seen the action of that direction.
     """
 
     metric: Metric = "l1"
@@ -98,6 +106,7 @@ class RoadmapConfig:
     eps_rule: EpsilonRule = "stable"
     matching: Matching = "whitened"
     min_edge_weight: int = 1
+    one_way: bool = False
 
     def __post_init__(self) -> None:
         _check_metric(self.metric)
@@ -114,6 +123,8 @@ class RoadmapConfig:
         weight = self.min_edge_weight
         if isinstance(weight, bool) or not isinstance(weight, int) or weight < 1:
             raise RoadmapError(f"min_edge_weight must be an integer >= 1, got {weight!r}")
+        if not isinstance(self.one_way, bool):
+            raise RoadmapError(f"one_way must be true or false, got {self.one_way!r}")
         if self.min_samples is None:
             return
         if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, int):
@@ -348,6 +359,7 @@ class Roadmap:
     )
     _component: np.ndarray | None = field(default=None, init=False, repr=False)
     _turns: Turns | None = field(default=None, init=False, repr=False)
+    _unshown: list[tuple[int, int]] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._validate()
@@ -488,6 +500,20 @@ class Roadmap:
         steps plans take (the edges themselves when there are no twins)."""
         return self._twin_groups()[1]
 
+    @property
+    def unshown(self) -> list[tuple[int, int]]:
+        """Steps (from, to) between twin groups that no action pair took that way, where the
+        config is one_way and the exits record the ways taken; [] otherwise."""
+        if self._unshown is None:
+            self._unshown = []
+            if self.config.one_way and len(self.exits):
+                group = self.twin_group
+                shown = {(int(group[a]), int(group[b])) for a, b, _ in self.exits.tolist()}
+                ways = [(a, b) for a, b in self.group_edges.tolist()]
+                ways += [(b, a) for a, b in ways]
+                self._unshown = sorted(set(ways) - shown)
+        return self._unshown
+
     def _neighbour_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """CSR adjacency (indptr, indices) between twin groups, neighbours sorted ascending,
         built once."""
@@ -589,13 +615,14 @@ class Roadmap:
         passes each group between by its first node. `avoid`: steps (from node, to node), oldest
         first, that no path takes in that direction (a closed loop's steps whose action led
         elsewhere); where no path is left, only the steps without which none would be are let
-        go (the newest kept first).
+        go (the newest kept first). A one_way roadmap's unshown steps come before them: paths
+        take a step the data never showed only where nothing else reaches dst.
         """
         s = self._node_id(src, "src")
         t = self._node_id(dst, "dst")
         if isinstance(max_paths, bool) or not isinstance(max_paths, int) or max_paths < 1:
             raise RoadmapError(f"max_paths must be an integer >= 1, got {max_paths!r}")
-        banned = self._steps(avoid)
+        banned = [*self.unshown, *self._steps(avoid)]
         src_node, dst_node = s, t
         s, t = (int(g) for g in self.twin_group[[s, t]])
         if s == t:
@@ -605,13 +632,13 @@ class Roadmap:
             return [[src_node, *p[1:-1], dst_node] for p in paths]
         indptr, indices, from_s, to_t = self._hops(s, t, banned)
         if not math.isfinite(from_s[t]):
-            if not banned:
+            if not banned or not math.isfinite(self._hops(s, t, [])[2][t]):
                 return []
             kept: list[tuple[int, int]] = []
             for step in reversed(banned):  # the newest first: each kept that leaves a way
                 if math.isfinite(self._hops(s, t, [*kept, step])[2][t]):
                     kept.append(step)
-            return self.shortest_paths(src_node, dst_node, max_paths, kept[::-1])
+            indptr, indices, from_s, to_t = self._hops(s, t, kept[::-1])
 
         def onward(u: int) -> list[int]:
             # Neighbours one hop further from src and one hop closer to dst: on a shortest path.
@@ -643,7 +670,7 @@ class Roadmap:
             return memory_paths(indptr, indices, self.turns, s, t, pairs, limit)
 
         paths = search(banned, max_paths)
-        if paths or not banned:
+        if paths or not banned or not search([], 1):
             return paths
         kept: list[tuple[int, int]] = []
         for step in reversed(banned):  # the newest first: each kept that leaves a way
@@ -663,12 +690,8 @@ class Roadmap:
         meta = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
-            # "matching" only where it is not the metric, "min_edge_weight" where not 1: older
-            # readers know no such keys
             "config": {
-                k: v
-                for k, v in asdict(self.config).items()
-                if (k, v) not in (("matching", "metric"), ("min_edge_weight", 1))
+                k: v for k, v in asdict(self.config).items() if (k, v) not in _UNSAID_DEFAULTS
             },
             "epsilon": self.epsilon,
             "mu0": self.mu0,

@@ -306,6 +306,53 @@ def test_shortest_paths_avoid_steps_in_their_direction_unless_every_path_takes_t
             grid.shortest_paths(0, 5, avoid=bad)
 
 
+def one_way(roadmap, shown):
+    """The roadmap as built for a task without undo, its action pairs going the `shown` ways
+    (each by a move of its own: no turn is forbidden)."""
+    exits = [(a, b, k) for k, (a, b) in enumerate(sorted(shown))]
+    exits = np.array(exits, np.int64).reshape(-1, 3)
+    return replace(roadmap, config=replace(roadmap.config, one_way=True), exits=exits)
+
+
+def test_one_way_paths_take_a_step_against_its_pairs_only_where_nothing_else_reaches():
+    grid = grid_roadmap(2, 3)  # 0 1 2 / 3 4 5
+    both = {(a, b) for a, b in grid.edges.tolist()} | {(b, a) for a, b in grid.edges.tolist()}
+    # 1 -> 2 shown only as 2 -> 1: 0 to 2 goes round rather than against it
+    road = one_way(grid, both - {(1, 2)})
+    assert road.unshown == [(1, 2)]
+    assert road.shortest_paths(0, 2) == [[0, 1, 4, 5, 2], [0, 3, 4, 5, 2]]
+    assert road.shortest_paths(2, 0) == grid.shortest_paths(2, 0)  # the shown way is shortest
+    assert replace(road, config=grid.config).shortest_paths(0, 2) == [[0, 1, 2]]  # two-way
+    assert replace(road, exits=np.zeros((0, 3), np.int64)).unshown == []  # no record: no ways
+    # every way onward is unshown: the fewest are let go, the loop's own avoided steps last
+    chain = one_way(make_roadmap(np.zeros((3, 2)), [(0, 1), (1, 2)]), {(1, 0), (2, 1)})
+    assert chain.shortest_paths(0, 2) == [[0, 1, 2]]
+    assert chain.shortest_paths(0, 2, avoid=[(0, 1)]) == [[0, 1, 2]]
+    road = one_way(grid, both - {(1, 2), (4, 5)})
+    assert road.shortest_paths(0, 2, avoid=[(5, 2)]) == [[0, 1, 2]]
+    assert one_way(grid, both).shortest_paths(0, 5) == grid.shortest_paths(0, 5)
+    disconnected = one_way(make_roadmap(np.zeros((3, 2)), [(0, 1)]), {(1, 0)})
+    assert disconnected.shortest_paths(0, 2) == []
+    # with memory (node 4 leads to 3 and 5 by one move): the turn 3 -> 4 -> 5 is not taken
+    road = one_way(grid, both - {(1, 2)})
+    exits = [e for e in road.exits.tolist() if e[0] != 4] + [[4, 3, 99], [4, 5, 99], [4, 1, 98]]
+    road = replace(road, exits=np.array(sorted(exits), np.int64))
+    assert road.turns and road.shortest_paths(0, 2) == [[0, 1, 4, 5, 2]]
+    assert road.shortest_paths(0, 2, avoid=[(1, 4)]) == [[0, 1, 2]]
+
+
+def test_one_way_is_saved_only_where_true(tmp_path):
+    grid = grid_roadmap(2, 3)
+    road = one_way(grid, {(0, 1)})
+    road.save(tmp_path / "one")
+    assert json.loads((tmp_path / "one" / "roadmap.json").read_text())["config"]["one_way"]
+    assert Roadmap.load(tmp_path / "one").unshown == road.unshown
+    grid.save(tmp_path / "two")
+    assert "one_way" not in json.loads((tmp_path / "two" / "roadmap.json").read_text())["config"]
+    with pytest.raises(RoadmapError, match="one_way must be true or false"):
+        RoadmapConfig(one_way=1)
+
+
 def test_shortest_paths_are_all_shortest_paths_in_order():
     grid = grid_roadmap(3, 4)
     paths = grid.shortest_paths(0, 11, max_paths=100)
