@@ -45,7 +45,11 @@ class PngCache:
 
 
 def decode_image(
-    data: bytes, size: int | None = None, at_least: int | None = None, max_side: int | None = None
+    data: bytes,
+    size: int | None = None,
+    at_least: int | None = None,
+    max_side: int | None = None,
+    max_pixels: int | None = None,
 ) -> np.ndarray:
     """PNG/JPEG bytes -> uint8 (H, W, 3).
 
@@ -53,6 +57,8 @@ def decode_image(
     convert to RGB without loss of what the camera saw: transparency, 16-bit, CMYK and such.
     `at_least`: a JPEG may be decoded scaled down by 2, 4 or 8 (in the decoder, far cheaper than
     decoding it whole) as long as its shorter side stays at least this many pixels.
+    `max_pixels`: refuses, before decoding, an image that would decode to more pixels (after
+    that scaling): a few kilobytes of PNG can hold a gigabyte of pixels.
     """
     try:
         with Image.open(io.BytesIO(data)) as img:
@@ -69,6 +75,12 @@ def decode_image(
                 scale = at_least / min(w, h)
                 if scale < 1:
                     img.draft(img.mode, (max(1, round(w * scale)), max(1, round(h * scale))))
+            if max_pixels is not None and img.size[0] * img.size[1] > max_pixels:
+                raise ImageError(
+                    f"image is {img.size[0]}x{img.size[1]}: it would decode to "
+                    f"{img.size[0] * img.size[1]} pixels, at most {max_pixels} are taken "
+                    "(a JPEG decodes at a reduced scale where it can; a PNG does not)"
+                )
             if img.mode not in ("RGB", "RGBA", "L", "P"):
                 raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
             if img.mode == "P" and "transparency" in img.info:

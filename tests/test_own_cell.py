@@ -71,6 +71,7 @@ def recorded(tmp_path_factory) -> Path:
     return rec
 
 
+@pytest.mark.timeout(1800)  # trains a model: a guard against hangs, not a deadline (2 min idle)
 def test_the_page_from_sheet_to_plan(recorded, tmp_path):
     rec = recorded
     cell = Workcell.from_json(json.loads((rec / "task.json").read_text())["markers"])

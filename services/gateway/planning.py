@@ -47,7 +47,13 @@ from shared.settings import Settings
 from shared.tasks import declare_task, get_task, has_simulator
 from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
-from shared.validation import MAX_FRAME, FieldError, parse_state
+from shared.validation import (
+    FRAME_DETAIL,
+    MAX_FRAME,
+    MAX_FRAME_PIXELS,
+    FieldError,
+    parse_state,
+)
 
 INFO_TTL_S = 10.0
 
@@ -61,7 +67,8 @@ class TaskNotServed(LookupError):
 
 def decode_b64_image(field: str, text: str, size: int | None = None) -> np.ndarray:
     """A base64 PNG/JPEG: of `size` pixels a side, or (None) of any size up to MAX_FRAME, a
-    camera frame that the encoder registers to the table frame."""
+    camera frame that the encoder registers to the table frame (a JPEG decoded reduced down
+    to FRAME_DETAIL, none beyond MAX_FRAME_PIXELS)."""
     if text.startswith("data:"):
         text = text.partition(",")[2]
     try:
@@ -69,7 +76,11 @@ def decode_b64_image(field: str, text: str, size: int | None = None) -> np.ndarr
     except (binascii.Error, ValueError):
         raise FieldError(field, "not valid base64") from None
     try:
-        return decode_image(data, size, max_side=None if size else MAX_FRAME)
+        if size:
+            return decode_image(data, size)
+        return decode_image(
+            data, at_least=FRAME_DETAIL, max_side=MAX_FRAME, max_pixels=MAX_FRAME_PIXELS
+        )
     except ImageError as exc:
         raise FieldError(field, str(exc)) from None
 

@@ -6,7 +6,7 @@ import io
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from PIL import Image
+from PIL import Image, ImageFile
 from pydantic import ValidationError
 
 from services.gateway.app import BodyLimit, error_body
@@ -14,7 +14,7 @@ from services.gateway.planning import decode_b64_image
 from services.gateway.schemas import PlanRequest
 from shared.bus import RemoteError, ServiceUnavailable
 from shared.messages import ErrorReply
-from shared.validation import FieldError
+from shared.validation import FRAME_DETAIL, FieldError
 
 
 def png_b64(size: int, mode: str = "RGB") -> str:
@@ -32,6 +32,25 @@ def test_a_camera_frame_may_have_any_size_within_bounds():
     assert decode_b64_image("start.image", png_b64(320)).shape == (320, 320, 3)
     with pytest.raises(FieldError, match="expected 16 to 4096 pixels a side"):
         decode_b64_image("start.image", png_b64(8))
+
+
+def test_a_frame_that_would_decode_beyond_the_cap_is_refused_before_decoding(monkeypatch):
+    bomb = png_b64(4096)  # 4096 x 4096 of one colour: 50 kB of PNG, 50 MB of pixels
+    assert len(bomb) < 100_000
+    decoded = []
+    monkeypatch.setattr(ImageFile.ImageFile, "load", lambda img: decoded.append(img.size))
+    with pytest.raises(FieldError, match=r"start.image.*4096x4096: it would decode to 16777216"):
+        decode_b64_image("start.image", bomb)
+    assert decoded == []  # refused from its header
+
+
+def test_a_large_jpeg_frame_decodes_reduced_but_keeps_its_detail():
+    buffer = io.BytesIO()
+    Image.new("RGB", (4096, 3072), "red").save(buffer, format="JPEG", quality=80)
+    text = base64.b64encode(buffer.getvalue()).decode()
+    # by 4 in the decoder: by 8 the shorter side would fall below FRAME_DETAIL
+    assert decode_b64_image("start.image", text).shape == (768, 1024, 3)
+    assert 768 // 2 < FRAME_DETAIL <= 768
 
 
 @pytest.mark.parametrize(
