@@ -106,7 +106,7 @@ class Registration:
         """The workcell's markers found in `frame`: id -> (4, 2) frame corners.
 
         First round the places where the last frame of this size showed each marker (one
-        camera's frames follow each other: a tenth of the pixels), then in the whole frame for
+        camera's frames follow each other: about a third of the pixels), then in the whole frame for
         those not found there, then at twice the scale: small, blurred markers far from the
         camera decode there (every box-stacking state at `camera` registers with it; 5 of 288
         did not without). Every corner is then refined on the whole frame (`_refine`), so that
@@ -127,8 +127,8 @@ class Registration:
 
     def _near(self, gray: np.ndarray, last: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Each marker of `last` looked for in a window round where it was: the marker and a
-        margin as wide as the marker (and more than the widest threshold window, so that the
-        marker's pixels threshold as in the whole frame and its corners come out the same)."""
+        margin as wide as the marker (and wider than the widest threshold window, so that the
+        marker's pixels threshold as in the whole frame)."""
         found: dict[int, np.ndarray] = {}
         height, width = gray.shape
         for ident, quad in last.items():
@@ -347,11 +347,12 @@ def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def _refine(gray: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
-    """A marker's corners to sub-pixel precision on the whole frame, in a window half a cell
-    wide: the detector's own step (a window of 0.3 cell, at most 5 px, stopping at 0.1 px)
-    leaves them where its threshold's outline began, up to a pixel apart for one frame
-    searched whole or in windows; this one converges to the same corner from either, 0.43
-    px from the true corner at the median on box-stacking frames at `camera` (0.68 before)."""
+    """A marker's corners to sub-pixel precision on the whole frame, in a window one cell
+    across (half a cell each side): the detector's own step (0.3 cell each side, at most 5 px,
+    stopping at 0.1 px) leaves them where its threshold's outline began, up to a pixel apart
+    for one frame searched whole or in windows; this one converges to the same corner from
+    either, 0.43 px from the true corner at the median on box-stacking frames at `camera`
+    (0.68 before)."""
     module = cv2.arcLength(quad.astype(np.float32), True) / (4 * cells)
     half = max(2, round(0.5 * module))
     corners = np.ascontiguousarray(quad, dtype=np.float32).reshape(-1, 1, 2)
