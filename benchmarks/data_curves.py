@@ -6,7 +6,8 @@ frames, look pairs by default), `lsr train model`, then on unseen test data Tabl
 counted (`lsr eval vfm`: `refusal_on`), the share of test images known, the APN
 (`lsr eval apn`) and the closed loop in simulation (`lsr eval system`). With `--explore N` the
 same model is grown by N of the arm's own actions (`lsr explore`) and measured again.
-Each size's record is kept in OUT/SIZE/record.json (delete it to redo); data seed = --seed +
+Each point's record is kept in OUT/SIZE/seedS/record.json (delete it to redo; a model that
+finished training before an interruption is kept too); data seed = --seed +
 size + 100000 x training seed, so every point has data of its own. Prints a row per point,
 writes OUT/RESULTS.json and, with --figure, the curves.
 
@@ -100,16 +101,20 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
         lsr(["data", "generate", "--task", args.task, "--pairs", str(pairs), "--seed",
              str(data_seed), "--appearance", args.appearance, "--overwrite", "--out", str(data)],
             times, "generate")  # fmt: skip
-    if model.exists():
-        shutil.rmtree(model)
-    trained = lsr(["train", "model", "--data", str(data), "--out", str(model), "--seed",
-                   str(seed), "--json"], times, "train_model")  # fmt: skip
+    if (model / "recipe.json").exists():  # trained whole before an interrupted run: kept
+        trained = json.loads((model / "recipe.json").read_text())["figures"]
+        times["train_model"] = {"wall": trained["seconds"], "cpu": None}
+    else:
+        shutil.rmtree(model, ignore_errors=True)
+        trained = lsr(["train", "model", "--data", str(data), "--out", str(model), "--seed",
+                       str(seed), "--json"], times, "train_model")  # fmt: skip
     record: dict[str, Any] = {"tuples": pairs, "seed": seed, "data_seed": data_seed}
     record["trained"] = trained
     record["defaults"] = measure(args, model, test, times, "")
     if args.explore:
         grown = run / "explored"
-        shutil.copytree(model, grown, dirs_exist_ok=False)
+        shutil.rmtree(grown, ignore_errors=True)
+        shutil.copytree(model, grown)
         lsr(["explore", "--model", str(grown), "--actions", str(args.explore), "--seed",
              str(data_seed)], times, "explore")  # fmt: skip
         record["explored"] = measure(args, grown, test, times, "_explored")
