@@ -42,8 +42,8 @@ def parse_state(task: Task, field: str, obj: Any) -> Any:
 MAX_FRAME = 4096  # pixels a side of a camera frame
 MAX_FRAME_PIXELS = 4096 * 3072  # decoded pixels of one frame: a 12-megapixel camera's
 # A JPEG frame is decoded reduced (by 2, 4 or 8, in the decoder) down to this shorter side: at
-# the simulated cell's 2.2 times the canonical field of view the 256 px table view still spans
-# 232 frame pixels, more than its own.
+# the simulated cell's 2.2 times the canonical field of view the table view still spans 233
+# frame pixels, more than in the cell's own 400 px frames (182).
 FRAME_DETAIL = 512
 
 
