@@ -191,9 +191,13 @@ function useUpload(end, file) {
       (file.type || "of unknown type") + ").";
     return;
   }
-  const reader = new FileReader();
-  reader.onload = () => { end.image = reader.result; refresh(end); };
-  reader.readAsDataURL(file);
+  // plan() waits for this: a Plan pressed at once would otherwise send the end as it was
+  end.reading = new Promise((resolve) => {
+    const reader = new FileReader();
+    reader.onload = () => { end.image = reader.result; refresh(end); resolve(); };
+    reader.onerror = () => resolve();
+    reader.readAsDataURL(file);
+  });
 }
 
 // The endpoint as the API takes it.
@@ -405,6 +409,7 @@ async function plan() {
   const button = $("plan-btn");
   button.disabled = true;
   try {
+    await Promise.all(Object.values(ui.ends).map((end) => end.reading));
     const maxPlans = Number($("max-plans").value);
     const reply = await api("POST", "/plan", {
       task: ui.task, start: endpointBody(ui.ends.start), goal: endpointBody(ui.ends.goal),
