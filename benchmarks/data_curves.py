@@ -5,11 +5,12 @@ For each size: `lsr data generate` at the task's look (`camera` by default: regi
 frames, look pairs by default), `lsr train model`, then on unseen test data Table I with refusals
 counted (`lsr eval vfm`: `refusal_on`), the share of test images known, the APN
 (`lsr eval apn`) and the closed loop in simulation (`lsr eval system`). With `--explore N` the
-same model is grown by N of the arm's own actions (`lsr explore`) and measured again.
-Each point's record is kept in OUT/SIZE/seedS/record.json (delete it to redo; a model that
-finished training before an interruption is kept too); data seed = --seed +
-size + 100000 x training seed, so every point has data of its own. Prints a row per point,
-writes OUT/RESULTS.json and, with --figure, the curves.
+same model is grown by N of the arm's own actions (`lsr explore`) and measured again; with
+`--retrain` also a model trained again on the recorded and explored tuples (`lsr data merge`).
+Each point's record is kept in OUT/SIZE/seedS/record.json (what it holds is not run again:
+delete it to redo; a model that finished training before an interruption is kept too); data
+seed = --seed + size + 100000 x training seed, so every point has data of its own. Prints a row
+per point, writes OUT/RESULTS.json and, with --figure, the curves.
 
 Usage:
   python benchmarks/data_curves.py --task box_stacking --sizes 250 500 1000 2500 5000 \
@@ -90,38 +91,49 @@ def measure(args: argparse.Namespace, model: Path, test: Path, times: dict[str, 
 
 
 def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> dict[str, Any]:
+    """One point; what its record.json holds already is kept and only what is missing runs."""
     run = args.out / f"{pairs}" / f"seed{seed}"
     path = run / "record.json"
-    if path.exists():
-        return json.loads(path.read_text())
-    times: dict[str, Any] = {}
-    data, model = run / "train", run / "model"
     data_seed = args.seed + pairs + 100000 * seed
-    if not (data / "manifest.json").exists():
-        lsr(["data", "generate", "--task", args.task, "--pairs", str(pairs), "--seed",
-             str(data_seed), "--appearance", args.appearance, "--overwrite", "--out", str(data)],
-            times, "generate")  # fmt: skip
-    if (model / "recipe.json").exists():  # trained whole before an interrupted run: kept
-        trained = json.loads((model / "recipe.json").read_text())["figures"]
-        times["train_model"] = {"wall": trained["seconds"], "cpu": None}
-    else:
-        shutil.rmtree(model, ignore_errors=True)
-        trained = lsr(["train", "model", "--data", str(data), "--out", str(model), "--seed",
-                       str(seed), "--json"], times, "train_model")  # fmt: skip
     record: dict[str, Any] = {"tuples": pairs, "seed": seed, "data_seed": data_seed}
-    record["trained"] = trained
-    record["defaults"] = measure(args, model, test, times, "")
-    if args.explore:
-        grown = run / "explored"
+    if path.exists():
+        record = json.loads(path.read_text())
+    times: dict[str, Any] = record.setdefault("times", {})
+    data, model = run / "train", run / "model"
+    if "defaults" not in record:
+        if not (data / "manifest.json").exists():
+            lsr(["data", "generate", "--task", args.task, "--pairs", str(pairs), "--seed",
+                 str(data_seed), "--appearance", args.appearance, "--overwrite", "--out",
+                 str(data)], times, "generate")  # fmt: skip
+        record["trained"] = train(model, data, seed, times, "train_model")
+        record["defaults"] = measure(args, model, test, times, "")
+    grown = run / "explored"
+    if args.explore and "explored" not in record:
         shutil.rmtree(grown, ignore_errors=True)
         shutil.copytree(model, grown)
         lsr(["explore", "--model", str(grown), "--actions", str(args.explore), "--seed",
              str(data_seed)], times, "explore")  # fmt: skip
         record["explored"] = measure(args, grown, test, times, "_explored")
-    record["times"] = times
+    if args.retrain and "explored" in record and "retrained" not in record:
+        merged, again = run / "merged", run / "retrained"
+        lsr(["data", "merge", "--data", str(data), "--data", str(grown / "experience" /
+             "explore"), "--overwrite", "--out", str(merged)], times, "merge")  # fmt: skip
+        record["retrained_model"] = train(again, merged, seed, times, "train_model_retrained")
+        record["retrained"] = measure(args, again, test, times, "_retrained")
     run.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record, indent=1) + "\n")
     return record
+
+
+def train(model: Path, data: Path, seed: int, times: dict[str, Any], name: str) -> dict[str, Any]:
+    """`lsr train model`; a model that finished training before an interrupted run is kept."""
+    if (model / "recipe.json").exists():
+        trained = json.loads((model / "recipe.json").read_text())["figures"]
+        times[name] = {"wall": trained["seconds"], "cpu": None}
+        return trained
+    shutil.rmtree(model, ignore_errors=True)
+    return lsr(["train", "model", "--data", str(data), "--out", str(model), "--seed", str(seed),
+                "--json"], times, name)  # fmt: skip
 
 
 def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int | None = None):
@@ -148,7 +160,7 @@ def plot(task: str, records: list[dict[str, Any]], path: Path) -> None:
         ("apn_right", None, "^", "APN right"),
         ("closed_loop", None, "d", "closed loop"),
     )
-    for kind, style in (("defaults", "-"), ("explored", "--")):
+    for kind, style in (("defaults", "-"), ("explored", "--"), ("retrained", ":")):
         points = [r for r in records if kind in r]
         suffix = "" if kind == "defaults" else f" + {kind}"
         for key, index, marker, label in curves if points else ():
@@ -179,6 +191,11 @@ def main() -> None:
     parser.add_argument("--closed-loop", type=int, default=100, help="closed-loop tasks (0: none)")
     parser.add_argument("--loop-seed", type=int, default=47)
     parser.add_argument("--explore", type=int, default=0, help="explored actions (0: none)")
+    parser.add_argument(
+        "--retrain",
+        action="store_true",
+        help="also train a model again on the recorded and explored tuples (lsr data merge)",
+    )
     parser.add_argument("--out", type=Path, default=Path("runs/curves"))
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()

@@ -87,6 +87,19 @@ def cmd_data_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_data_merge(args: argparse.Namespace) -> int:
+    from services.data.merge import merge_datasets
+
+    result = merge_datasets(args.data, args.out, overwrite=args.overwrite)
+    print(
+        f"wrote {result['tuples']} tuples ({result['action_pairs']} action pairs) from "
+        f"{result['sources']} datasets to {args.out}; train on it with "
+        f"lsr train model --data {args.out}"
+    )
+    print(json.dumps(result))
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     data = sub.add_parser("data", help="datasets").add_subparsers(dest="sub", required=True)
     gen = data.add_parser("generate", help="render a dataset of action and no-action pairs")
@@ -150,3 +163,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     exp.add_argument("--out", required=True, type=Path)
     exp.add_argument("--overwrite", action="store_true", help="replace an existing folder")
     exp.set_defaults(handler=cmd_data_export)
+
+    merge = data.add_parser(
+        "merge",
+        help="datasets of one task (a recording, its experience) -> one dataset to train on",
+    )
+    merge.add_argument(
+        "--data", required=True, type=Path, action="append", help="dataset folder (repeatable)"
+    )
+    merge.add_argument("--out", required=True, type=Path)
+    merge.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+    merge.set_defaults(handler=cmd_data_merge)
