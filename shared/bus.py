@@ -393,11 +393,15 @@ class Batched(Generic[R]):
 
     `parse` turns one payload into its request, raising for bad input (that query alone gets
     the error); `run` turns the requests of a batch into their replies, in order.
+    `max_queued`: a query that finds that many waiting is answered "unavailable" at once (the
+    gateway's 503 with Retry-After), so that heavy work neither piles up in memory nor holds
+    its callers until their deadline.
     """
 
     parse: Callable[[bytes], R]
     run: Callable[[list[R]], list[BaseModel]]
     max_batch: int = 8
+    max_queued: int | None = None
 
 
 Operation = Handler | Batched  # what a service answers one of its keys with
@@ -433,14 +437,30 @@ class Server:
         self._queryables: list[zenoh.Queryable] = []
         self._queues: list[Pending] = []
         self.expired = 0  # queries dropped because their caller had stopped waiting
+        self.busy = 0  # queries turned away because their queue was full
         self._expired_lock = threading.Lock()
 
     def serve(self, key: str, handler: Operation, per_instance: bool = True) -> None:
         """Answer `key` (as a complete queryable) and, for callers that pick, `key/instance`."""
         work = handler if isinstance(handler, Batched) else Batched(handler, list, max_batch=1)
         pending: Pending = queue.Queue()
+        operation, max_queued = key.rsplit("/", 1)[-1], work.max_queued
 
         def arrived(query: zenoh.Query) -> None:
+            if max_queued is not None and pending.qsize() >= max_queued:
+                busy = ErrorReply(
+                    code="unavailable",
+                    field=self.service,
+                    message=f"{self.service} is busy: {max_queued} {operation} queries wait "
+                    "already; try again in a second",
+                )
+                try:
+                    query.reply_err(pack(busy), encoding=MSGPACK)
+                finally:
+                    finish([query])
+                with self._expired_lock:
+                    self.busy += 1
+                return
             pending.put((time.monotonic(), query))
 
         keys = [key, f"{key}/{self.instance}"] if per_instance else [key]

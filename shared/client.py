@@ -17,20 +17,21 @@ import numpy as np
 import zenoh
 from pydantic import BaseModel
 
-from shared.bus import CallTiming, PendingCall, Replicas, call
+from shared.bus import CallTiming, PendingCall, Replicas, call, encoder_image_size
+from shared.images import encode_frame
 from shared.lru import LruCache
 from shared.messages import (
     DecodeReply,
     DecodeRequest,
     EncodeReply,
     EncodeRequest,
+    FramesRequest,
     M,
     PathsReply,
     PathsRequest,
     ProposeReply,
     ProposeRequest,
     RegisterReply,
-    RegisterRequest,
     RenderReply,
     RenderRequest,
     RunReply,
@@ -39,6 +40,11 @@ from shared.messages import (
 )
 from shared.plans import Match, UnknownImageError, VisualActionPlan, refused_end
 from shared.tasks import get_task
+
+# An image a client gives: pixels (views at the model's size; plan() compresses a camera's
+# frames first), or a camera frame's PNG/JPEG bytes as its camera or client gave them
+Image = np.ndarray | bytes
+SIZE_TTL_S = 10.0  # a model's image size is asked again after this long (a new model)
 
 
 class PlanOutcome(NamedTuple):
@@ -56,6 +62,7 @@ class PlanningClient:
         self.deadline_s = deadline_s
         self.replicas = Replicas(session)
         self.node_images: LruCache[tuple[str, bytes], np.ndarray] = LruCache()
+        self._size: tuple[float, int] | None = None  # (when asked, the model's image size)
 
     def _call(
         self,
@@ -101,55 +108,70 @@ class PlanningClient:
         reply: RenderReply = rendering.result()
         return reply.images.numpy()
 
+    def image_size(self, deadline: float | None = None) -> int:
+        """The served model's image size, asked of the encoder and remembered for a while."""
+        if self._size is None or time.monotonic() - self._size[0] > SIZE_TTL_S:
+            left = (deadline or self.deadline()) - time.monotonic()
+            self._size = (
+                time.monotonic(),
+                encoder_image_size(self.session, self.task_name, max(0.05, min(1.5, left))),
+            )
+        return self._size[1]
+
     def register(
-        self, frames: np.ndarray, deadline: float | None = None
+        self, frames: list[Image], deadline: float | None = None
     ) -> tuple[np.ndarray, list[str | None]]:
-        """`frames` (N, H, W, 3) in the table frame at the model's size, and why each that
-        could not be registered was not (None where it was)."""
-        request = RegisterRequest(task=self.task_name, images=WireArray.of(frames))
-        pending = self._call(
+        """`frames` (PNG/JPEG bytes, or pixels) in the table frame at the model's size, and why
+        each that could not be registered was not (None where it was)."""
+        sent = [f if isinstance(f, bytes) else encode_frame(f) for f in frames]
+        request = FramesRequest(task=self.task_name, frames=sent)
+        reply: RegisterReply = self._call(
             "encoder", "register", request, RegisterReply, deadline or self.deadline()
-        )
-        reply: RegisterReply = pending.result()
+        ).result()
         return reply.images.numpy(), reply.refused or [None] * len(frames)
 
     def _encode(
-        self, images: list[np.ndarray], deadline: float
+        self, images: list[Image], deadline: float
     ) -> tuple[np.ndarray, WireArray | None, list[str | None], list[PendingCall]]:
-        """Latents, reconstruction errors and registration refusals of `images`: one encode
-        call per image size (a camera frame and a table-frame image may come together), all
-        in flight at once."""
-        groups: dict[tuple[int, ...], list[int]] = {}
-        for i, image in enumerate(images):
-            groups.setdefault(image.shape, []).append(i)
-        pending = [
-            self._call(
-                "encoder",
-                "encode",
-                EncodeRequest(
-                    task=self.task_name, images=WireArray.of(np.stack([images[i] for i in rows]))
-                ),
-                EncodeReply,
-                deadline,
+        """Latents, reconstruction errors and registration refusals of `images`: pixels (views
+        at the model's size) in one `encode` call, camera frames' bytes in one `frames` call,
+        both in flight at once."""
+        frames = [image if isinstance(image, bytes) else None for image in images]
+        groups = {
+            "encode": [i for i, f in enumerate(frames) if f is None],
+            "frames": [i for i, f in enumerate(frames) if f is not None],
+        }
+        requests = {
+            "encode": lambda rows: EncodeRequest(
+                task=self.task_name, images=WireArray.of(np.stack([images[i] for i in rows]))
+            ),
+            "frames": lambda rows: FramesRequest(
+                task=self.task_name, frames=[frames[i] for i in rows]
+            ),
+        }
+        pending = {
+            operation: self._call(
+                "encoder", operation, requests[operation](rows), EncodeReply, deadline
             )
-            for rows in groups.values()
-        ]
+            for operation, rows in groups.items()
+            if rows
+        }
         latents: list[Any] = [None] * len(images)
         errors: list[Any] = [None] * len(images)
         refused: list[str | None] = [None] * len(images)
-        for rows, encoding in zip(groups.values(), pending, strict=True):
+        for operation, encoding in pending.items():
             reply: EncodeReply = encoding.result()
-            for k, i in enumerate(rows):
+            for k, i in enumerate(groups[operation]):
                 latents[i] = reply.latents.numpy()[k]
                 errors[i] = None if reply.errors is None else reply.errors.numpy()[k]
                 refused[i] = None if reply.refused is None else reply.refused[k]
         known = None if any(e is None for e in errors) else WireArray.of(np.stack(errors))
-        return np.stack(latents), known, refused, pending
+        return np.stack(latents), known, refused, list(pending.values())
 
     def plan_with_reason(
         self,
-        start: np.ndarray,
-        goal: np.ndarray,
+        start: Image,
+        goal: Image,
         max_plans: int = 8,
         include_images: bool = True,
         deadline: float | None = None,
@@ -249,15 +271,18 @@ class PlanningClient:
 
     def plan(
         self,
-        start: np.ndarray,
-        goal: np.ndarray,
+        start: Image,
+        goal: Image,
         max_plans: int = 8,
         include_images: bool = False,
         expect: int | None = None,
         avoid: Sequence[tuple[int, int]] = (),
     ) -> list[VisualActionPlan]:
         """The closed loop's Planner protocol: plans only, no decoded images unless asked;
-        UnknownImageError when the planner refused an end."""
+        UnknownImageError when the planner refused an end. A camera's frames (pixels of
+        another size than the model's) cross the bus compressed."""
+        size = self.image_size()
+        start, goal = (as_sent(image, size) or image for image in (start, goal))
         outcome = self.plan_with_reason(
             start, goal, max_plans, include_images, expect_node=expect, avoid_steps=avoid
         )
@@ -270,6 +295,14 @@ class PlanningClient:
         """A closed-loop episode in a sim instance; it plans through this same network."""
         deadline = time.monotonic() + deadline_s
         return self._call("sim", "run", request, RunReply, deadline).result()
+
+
+def as_sent(image: Image, size: int) -> bytes | None:
+    """A frame's bytes as they cross the bus (pixels of another size than the model's
+    compressed first); None for pixels at the model's `size`, which go as they are."""
+    if isinstance(image, bytes):
+        return image
+    return None if image.shape[:2] == (size, size) else encode_frame(image)
 
 
 def timings(calls: list[PendingCall]) -> list[CallTiming]:

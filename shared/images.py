@@ -7,6 +7,7 @@ import hashlib
 import io
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 from PIL import Image, ImageDraw
 
@@ -44,6 +45,37 @@ class PngCache:
         return encoded
 
 
+def _opened(
+    img: Image.Image,
+    size: int | None,
+    at_least: int | None,
+    max_side: int | None,
+    max_pixels: int | None,
+) -> None:
+    """Every check `decode_image` makes from the header alone, and the JPEG draft it asks."""
+    if img.format not in ("PNG", "JPEG"):
+        raise ImageError(f"image format {img.format} is not PNG or JPEG")
+    if size is not None and img.size != (size, size):
+        raise ImageError(f"image is {img.size[0]}x{img.size[1]}, expected {size}x{size}")
+    if max_side is not None and not all(16 <= side <= max_side for side in img.size):
+        raise ImageError(
+            f"image is {img.size[0]}x{img.size[1]}; expected 16 to {max_side} pixels a side"
+        )
+    if at_least is not None and img.format == "JPEG" and img.mode in ("RGB", "L"):
+        w, h = img.size
+        scale = at_least / min(w, h)
+        if scale < 1:
+            img.draft(img.mode, (max(1, round(w * scale)), max(1, round(h * scale))))
+    if max_pixels is not None and img.size[0] * img.size[1] > max_pixels:
+        raise ImageError(
+            f"image is {img.size[0]}x{img.size[1]}: it would decode to "
+            f"{img.size[0] * img.size[1]} pixels, at most {max_pixels} are taken "
+            "(a JPEG decodes at a reduced scale where it can; a PNG does not)"
+        )
+    if img.mode not in ("RGB", "RGBA", "L", "P"):
+        raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
+
+
 def decode_image(
     data: bytes,
     size: int | None = None,
@@ -62,27 +94,7 @@ def decode_image(
     """
     try:
         with Image.open(io.BytesIO(data)) as img:
-            if img.format not in ("PNG", "JPEG"):
-                raise ImageError(f"image format {img.format} is not PNG or JPEG")
-            if size is not None and img.size != (size, size):
-                raise ImageError(f"image is {img.size[0]}x{img.size[1]}, expected {size}x{size}")
-            if max_side is not None and not all(16 <= side <= max_side for side in img.size):
-                raise ImageError(
-                    f"image is {img.size[0]}x{img.size[1]}; expected 16 to {max_side} pixels a side"
-                )
-            if at_least is not None and img.format == "JPEG" and img.mode in ("RGB", "L"):
-                w, h = img.size
-                scale = at_least / min(w, h)
-                if scale < 1:
-                    img.draft(img.mode, (max(1, round(w * scale)), max(1, round(h * scale))))
-            if max_pixels is not None and img.size[0] * img.size[1] > max_pixels:
-                raise ImageError(
-                    f"image is {img.size[0]}x{img.size[1]}: it would decode to "
-                    f"{img.size[0] * img.size[1]} pixels, at most {max_pixels} are taken "
-                    "(a JPEG decodes at a reduced scale where it can; a PNG does not)"
-                )
-            if img.mode not in ("RGB", "RGBA", "L", "P"):
-                raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
+            _opened(img, size, at_least, max_side, max_pixels)
             if img.mode == "P" and "transparency" in img.info:
                 img = img.convert("RGBA")
             if img.mode == "RGBA" and img.getchannel("A").getextrema()[0] < 255:
@@ -93,6 +105,35 @@ def decode_image(
     except Exception as exc:
         raise ImageError(f"not a readable PNG or JPEG image ({exc})") from None
     return array
+
+
+def image_size(
+    data: bytes,
+    at_least: int | None = None,
+    max_side: int | None = None,
+    max_pixels: int | None = None,
+) -> tuple[int, int]:
+    """(width, height) that `decode_image` would decode `data` to, from its header alone, or
+    the ImageError it would raise there: how a gateway refuses an image without decoding it."""
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            _opened(img, None, at_least, max_side, max_pixels)
+            return img.size
+    except ImageError:
+        raise
+    except Exception as exc:
+        raise ImageError(f"not a readable PNG or JPEG image ({exc})") from None
+
+
+def encode_frame(image: np.ndarray) -> bytes:
+    """A camera frame as PNG bytes made fast (zlib level 1): lossless, so what a model is given
+    of it is what it would be given of the pixels, at a fraction of their bytes on the bus."""
+    ok, data = cv2.imencode(
+        ".png", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    )
+    if not ok:
+        raise ImageError(f"could not encode a frame of shape {image.shape} as PNG")
+    return data.tobytes()
 
 
 def contact_sheet(

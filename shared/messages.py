@@ -75,9 +75,7 @@ class TaskMessage(Message):
 
 # encoder ------------------------------------------------------------------------------------
 class EncodeRequest(TaskMessage):
-    # uint8 (N, H, W, 3): at the model's size, images in the table frame; at any other size,
-    # camera frames the encoder registers first (shared.registration.to_table_frame)
-    images: WireArray
+    images: WireArray  # uint8 (N, S, S, 3): at the model's size, images in the table frame
 
 
 class EncodeReply(Message):
@@ -88,8 +86,18 @@ class EncodeReply(Message):
     refused: list[str | None] | None = None
 
 
-class RegisterRequest(TaskMessage):
-    images: WireArray  # uint8 (N, H, W, 3): camera frames, as EncodeRequest's
+# A camera frame crosses the bus as the PNG or JPEG bytes a client sent (never as raw pixels:
+# a 4096 px frame's are 50 MB); the encoder decodes it (a JPEG reduced, in the decoder) and
+# registers it to the table frame (shared.registration.to_table_frame).
+MAX_FRAME_BYTES = 32 * 2**20
+Frame = Annotated[bytes, Field(min_length=1, max_length=MAX_FRAME_BYTES)]
+
+
+class FramesRequest(TaskMessage):
+    """Camera frames to encode (the `frames` operation, answered with an EncodeReply) or only
+    to register (`register`, a RegisterReply): work of its own queue, apart from `encode`."""
+
+    frames: list[Frame] = Field(min_length=1, max_length=8)
 
 
 class RegisterReply(Message):

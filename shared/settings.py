@@ -55,6 +55,16 @@ class Settings(BaseSettings):
     )
     max_in_flight: int = Field(32, ge=1, description="/plan and /render requests in progress")
     max_executing: int = Field(4, ge=1, description="/execute requests in progress")
+    light_body_bytes: int = Field(
+        192 * 1024,
+        ge=0,
+        description="bodies up to this are light (states, views); larger ones bring camera "
+        "frames and share LSR_MAX_FRAMES_IN_FLIGHT",
+    )
+    max_frames_in_flight: int = Field(
+        4, ge=1, description="requests with camera frames in progress (the rest: 503)"
+    )
+    max_frames_queued: int = Field(8, ge=0, description="requests with frames waiting for a slot")
     max_queued: int = Field(256, ge=0, description="requests waiting for a slot; more: 503")
     queue_wait_s: float = Field(2.0, ge=0, description="longest wait for a slot; then 503")
     api_key_hashes: str = Field(

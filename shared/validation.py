@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from shared.appearance import APPEARANCES, LEVELS
+from shared.images import ImageError, decode_image, image_size
 from shared.messages import WireArray
 from shared.tasks.base import InvalidStateError, Task
 
@@ -45,6 +46,28 @@ MAX_FRAME_PIXELS = 4096 * 3072  # decoded pixels of one frame: a 12-megapixel ca
 # the simulated cell's 2.2 times the canonical field of view the table view still spans 233
 # frame pixels, more than in the cell's own 400 px frames (182).
 FRAME_DETAIL = 512
+
+
+def frame_size(field: str, data: bytes) -> tuple[int, int]:
+    """(width, height) a camera frame's PNG/JPEG bytes decode to, read from their header; a
+    FieldError naming `field` for what `decode_frame` would refuse there (a decode bomb)."""
+    try:
+        return image_size(
+            data, at_least=FRAME_DETAIL, max_side=MAX_FRAME, max_pixels=MAX_FRAME_PIXELS
+        )
+    except ImageError as exc:
+        raise FieldError(field, str(exc)) from None
+
+
+def decode_frame(field: str, data: bytes) -> np.ndarray:
+    """A camera frame's pixels, a JPEG decoded reduced down to FRAME_DETAIL; none beyond
+    MAX_FRAME_PIXELS (refused from the header)."""
+    try:
+        return decode_image(
+            data, at_least=FRAME_DETAIL, max_side=MAX_FRAME, max_pixels=MAX_FRAME_PIXELS
+        )
+    except ImageError as exc:
+        raise FieldError(field, str(exc)) from None
 
 
 def check_frames(field: str, array: WireArray, max_rows: int | None = None) -> np.ndarray:

@@ -1,5 +1,9 @@
 """The encoder service: images -> latent means (and reconstruction errors), latents -> images.
 
+Camera frames come compressed (`frames`, `register`) and are decoded and registered here, in a
+worker and a bounded queue of their own, so that a flood of them never delays images at the
+model's size (`encode`: renders of states, registered images).
+
 Encoding is batched: the images of every encode query queued at once go through one forward
 pass. Decoded roadmap nodes are cached by the callers (`shared.client.PlanningClient`), not here.
 """
@@ -17,27 +21,51 @@ from shared.messages import (
     DecodeRequest,
     EncodeReply,
     EncodeRequest,
+    FramesRequest,
     RegisterReply,
-    RegisterRequest,
     WireArray,
     unpack,
 )
 from shared.registration import Registration, to_table_frame
 from shared.tasks import get_task
-from shared.validation import check_frames, check_latents, check_task
+from shared.validation import (
+    FieldError,
+    check_frames,
+    check_latents,
+    check_task,
+    decode_frame,
+)
 
 MAX_BATCH = 256
+# Camera frames are heavy work (a 4096 px JPEG: ~15 ms to decode reduced, ~5 to register) with
+# a queue of their own: at most this many queries wait, the next ones are told to come back
+# (Batched.max_queued), and images at the model's size (`encode`) never wait behind them.
+MAX_FRAME_QUERIES = 4
 
 
 def setup(context: ServiceContext) -> dict[str, Operation]:
     vae, _ = load_vae(context.model.directory / "vae")
     size, dim, task = context.model.image_size, context.model.latent_dim, context.model.task
-    registration = Registration(get_task(task).workcell, size)  # every image, before the model
+    registration = Registration(get_task(task).workcell, size)  # every frame, before the model
 
     def parse_encode(payload: bytes) -> tuple[np.ndarray, list[str | None]]:
         request = unpack(payload, EncodeRequest)
         check_task(request.task, task)
-        return to_table_frame(registration, check_frames("images", request.images, MAX_BATCH))
+        images = check_frames("images", request.images, MAX_BATCH)
+        if images.shape[1:3] != (size, size):
+            raise FieldError(
+                "images",
+                f"images are {size} x {size} (the model's size); camera frames of "
+                f"{images.shape[2]} x {images.shape[1]} go compressed to the frames operation",
+            )
+        return images, [None] * len(images)
+
+    def parse_frames(payload: bytes) -> tuple[np.ndarray, list[str | None]]:
+        """Decoded and registered here, in the frames worker: never in front of `encode`."""
+        request = unpack(payload, FramesRequest)
+        check_task(request.task, task)
+        frames = [decode_frame(f"frames.{i}", data) for i, data in enumerate(request.frames)]
+        return to_table_frame(registration, frames)
 
     def encode(batches: list[tuple[np.ndarray, list[str | None]]]) -> list[EncodeReply]:
         images = np.concatenate([registered for registered, _ in batches])
@@ -54,14 +82,12 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
             )
         ]
 
-    def register(payload: bytes) -> RegisterReply:
-        """Images in the table frame, for what is stored rather than encoded (experience)."""
-        request = unpack(payload, RegisterRequest)
-        check_task(request.task, task)
-        images, refused = to_table_frame(
-            registration, check_frames("images", request.images, MAX_BATCH)
-        )
-        return RegisterReply(images=WireArray.of(images), refused=refused if any(refused) else None)
+    def register(batches: list[tuple[np.ndarray, list[str | None]]]) -> list[RegisterReply]:
+        """Frames in the table frame, for what is stored rather than encoded (experience)."""
+        return [
+            RegisterReply(images=WireArray.of(images), refused=refused if any(refused) else None)
+            for images, refused in batches
+        ]
 
     def decode(payload: bytes) -> DecodeReply:
         request = unpack(payload, DecodeRequest)
@@ -72,6 +98,7 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
 
     return {
         "encode": Batched(parse_encode, encode, max_batch=8),
+        "frames": Batched(parse_frames, encode, max_batch=4, max_queued=MAX_FRAME_QUERIES),
         "decode": decode,
-        "register": register,
+        "register": Batched(parse_frames, register, max_batch=1, max_queued=MAX_FRAME_QUERIES),
     }

@@ -138,16 +138,27 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes, timeout_s=settings.body_timeout_s)
     # Outermost: a request waiting for admission is not read yet. /execute holds its worker
     # for many seconds, so it has its own, smaller share.
-    for paths, limit in [
-        (frozenset({"/plan", "/render", "/experience"}), settings.max_in_flight),
-        (frozenset({"/execute", "/execute/stream"}), settings.max_executing),
+    # A request that brings camera frames (a body over LSR_LIGHT_BODY_BYTES) has a share of its
+    # own, so that they never take the slots of plans from states or views.
+    planning = frozenset({"/plan", "/render", "/experience"})
+    for paths, limit, queue, heavy in [
+        (planning, settings.max_in_flight, settings.max_queued, False),
+        (planning, settings.max_frames_in_flight, settings.max_frames_queued, True),
+        (
+            frozenset({"/execute", "/execute/stream"}),
+            settings.max_executing,
+            settings.max_queued,
+            None,
+        ),
     ]:
         app.add_middleware(
             Admission,
             paths=paths,
             limit=limit,
-            queue=settings.max_queued,
+            queue=queue,
             wait_s=settings.queue_wait_s,
+            heavy=heavy,
+            light_bytes=settings.light_body_bytes,
         )
     digests = load_digests(settings.api_key_hashes, settings.api_keys_file)
     if settings.require_api_keys and not digests:

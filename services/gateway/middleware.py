@@ -142,7 +142,10 @@ class Admission:
     """Sheds what the gateway cannot serve in time, quickly, instead of queueing without bound.
 
     At most `limit` requests to `paths` are in progress; the next ones wait for a slot, at most
-    `queue` of them and each at most `wait_s`. A request that would wait longer than that (by the
+    `queue` of them and each at most `wait_s`. With `heavy` set it takes only heavy requests
+    (camera frames: bodies over `light_bytes`) or only light ones, so that each kind has its own
+    share and a flood of frames never takes the slots of plans from states or views. A request
+    that would wait longer than that (by the
     recent time per request and the queue ahead of it), or find the queue full, gets 503 at once
     (`Retry-After: 1`); one whose wait runs out gets it then. A waiting request holds no body in
     memory (it is not read yet). Each request's arrival time goes into its scope (`ARRIVED`),
@@ -150,10 +153,19 @@ class Admission:
     """
 
     def __init__(
-        self, app: ASGIApp, paths: frozenset[str], limit: int, queue: int, wait_s: float
+        self,
+        app: ASGIApp,
+        paths: frozenset[str],
+        limit: int,
+        queue: int,
+        wait_s: float,
+        heavy: bool | None = None,
+        light_bytes: int = 0,
     ) -> None:
         self.app = app
         self.paths = paths
+        self.heavy = heavy
+        self.light_bytes = light_bytes
         self.limit = limit
         self.queue = queue
         self.wait_s = wait_s
@@ -166,10 +178,21 @@ class Admission:
             return 0.0
         return (self.waiting + 1) * self.service_s / self.limit
 
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+    def takes(self, scope: Scope) -> bool:
+        """Whether this share admits the request: every one to its paths, or (`heavy` set) only
+        the heavy ones (bodies over `light_bytes`, or of a length not declared) or the light."""
         if scope["type"] != "http" or scope["path"] not in self.paths:
+            return False
+        if self.heavy is None:
+            return True
+        declared = dict(scope["headers"]).get(b"content-length", b"")
+        heavy = not declared.isdigit() or int(declared) > self.light_bytes
+        return heavy == self.heavy
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if not self.takes(scope):
             return await self.app(scope, receive, send)
-        scope[ARRIVED] = time.monotonic()
+        scope.setdefault(ARRIVED, time.monotonic())
         if self._slots is None:
             self._slots = anyio.Semaphore(self.limit)
         if self._slots.value == 0 and (

@@ -35,11 +35,10 @@ from shared.bus import (
     SERVICES,
     CallTiming,
     ServiceUnavailable,
-    encoder_image_size,
     instances,
     robot_plan_key,
 )
-from shared.client import PlanningClient
+from shared.client import Image, PlanningClient
 from shared.dataset import DatasetError
 from shared.images import ImageError, PngCache, decode_image, png_b64
 from shared.messages import RunRequest, WireArray
@@ -47,15 +46,7 @@ from shared.settings import Settings
 from shared.tasks import declare_task, get_task, has_simulator
 from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
-from shared.validation import (
-    FRAME_DETAIL,
-    MAX_FRAME,
-    MAX_FRAME_PIXELS,
-    FieldError,
-    parse_state,
-)
-
-INFO_TTL_S = 10.0
+from shared.validation import FieldError, decode_frame, frame_size, parse_state
 
 
 class TaskNotServed(LookupError):
@@ -65,24 +56,36 @@ class TaskNotServed(LookupError):
         super().__init__(f"task {task!r} is not served here; served tasks are {served}")
 
 
-def decode_b64_image(field: str, text: str, size: int | None = None) -> np.ndarray:
-    """A base64 PNG/JPEG: of `size` pixels a side, or (None) of any size up to MAX_FRAME, a
-    camera frame that the encoder registers to the table frame (a JPEG decoded reduced down
-    to FRAME_DETAIL, none beyond MAX_FRAME_PIXELS)."""
+def b64_bytes(field: str, text: str) -> bytes:
+    """The bytes of base64 text (a data URL's too), or a FieldError naming `field`."""
     if text.startswith("data:"):
         text = text.partition(",")[2]
     try:
-        data = base64.b64decode(text, validate=True)
+        return base64.b64decode(text, validate=True)
     except (binascii.Error, ValueError):
         raise FieldError(field, "not valid base64") from None
+
+
+def decode_b64_image(field: str, text: str, size: int) -> np.ndarray:
+    """A base64 PNG/JPEG of `size` pixels a side."""
     try:
-        if size:
-            return decode_image(data, size)
-        return decode_image(
-            data, at_least=FRAME_DETAIL, max_side=MAX_FRAME, max_pixels=MAX_FRAME_PIXELS
-        )
+        return decode_image(b64_bytes(field, text), size)
     except ImageError as exc:
         raise FieldError(field, str(exc)) from None
+
+
+def image_input(field: str, text: str, size: int) -> np.ndarray | bytes:
+    """A base64 image as it goes on: pixels for an image at the model's `size` (a view in the
+    table frame, a few kB), else a camera frame's bytes as the client sent them, checked from
+    their header only (format, sides, decoded pixels: a decode bomb is refused here, naming
+    `field`); the encoder decodes and registers it."""
+    data = b64_bytes(field, text)
+    if frame_size(field, data) == (size, size):
+        try:
+            return decode_image(data, size)
+        except ImageError as exc:
+            raise FieldError(field, str(exc)) from None
+    return data
 
 
 class Gateway:
@@ -90,7 +93,6 @@ class Gateway:
         self.session = session
         self.settings = settings
         self._clients: dict[str, PlanningClient] = {}
-        self._sizes: dict[str, tuple[float, int]] = {}  # task -> (when asked, image size)
         self.pngs = PngCache()
         self._logs: dict[str, ExperienceLog] = {}  # task -> where its robots' reports go
         for spec in settings.task_specs.values():  # tasks defined by their data
@@ -124,13 +126,7 @@ class Gateway:
 
     def image_size(self, task: str, deadline: float) -> int:
         """The model's image size, asked of the encoder and remembered for a few seconds."""
-        self.served(task)
-        cached = self._sizes.get(task)
-        if cached is None or time.monotonic() - cached[0] > INFO_TTL_S:
-            timeout_s = max(0.05, min(1.5, deadline - time.monotonic()))
-            cached = (time.monotonic(), encoder_image_size(self.session, task, timeout_s))
-            self._sizes[task] = cached
-        return cached[1]
+        return self.client(task).image_size(deadline)
 
     def health(self) -> Health:
         asked = {
@@ -168,15 +164,18 @@ class Gateway:
     # routes ---------------------------------------------------------------------------------
     def _images(
         self, task: str, endpoints: dict[str, Endpoint], deadline: float
-    ) -> dict[str, np.ndarray]:
-        """Decode the image endpoints (any size: camera frames are registered by the encoder,
-        images at the model's size are taken as in the table frame already), render the state
-        endpoints (in one sim call)."""
+    ) -> dict[str, Image]:
+        """The image endpoints (`image_input`: camera frames go on compressed, to be registered
+        by the encoder; images at the model's size are in the table frame already), and the
+        state endpoints rendered (in one sim call)."""
         logic = get_task(task)
-        images, states = {}, {}
+        images: dict[str, Image] = {}
+        states = {}
+        size = None
         for name, endpoint in endpoints.items():
             if endpoint.image is not None:
-                images[name] = decode_b64_image(f"{name}.image", endpoint.image)
+                size = size or self.image_size(task, deadline)
+                images[name] = image_input(f"{name}.image", endpoint.image, size)
             else:
                 states[name] = parse_state(logic, f"{name}.state", endpoint.state)
         if states:
@@ -245,7 +244,8 @@ class Gateway:
         if request.goal.state is not None:
             goal_state = logic.state_to_json(parse_state(logic, "goal.state", request.goal.state))
         else:  # a frame is registered by the episode, as its own observations are
-            goal_image = WireArray.of(decode_b64_image("goal.image", request.goal.image))
+            data = b64_bytes("goal.image", request.goal.image)
+            goal_image = WireArray.of(decode_frame("goal.image", data))
         return RunRequest(
             task=request.task,
             start=logic.state_to_json(start),
@@ -295,10 +295,10 @@ class Gateway:
     ) -> np.ndarray:
         """A reported image at the model's size; a camera frame registered by the encoder (a
         FieldError naming `field` when its markers are not found)."""
-        image = decode_b64_image(field, text)
-        if image.shape[:2] == (size, size):
+        image = image_input(field, text, size)
+        if isinstance(image, np.ndarray):
             return image
-        (registered,), (why,) = self.client(task).register(image[None], deadline)
+        (registered,), (why,) = self.client(task).register([image], deadline)
         if why is not None:
             raise FieldError(field, why)
         return registered

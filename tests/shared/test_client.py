@@ -1,6 +1,7 @@
 """PlanningClient against the real encoder, planner and APN handlers on a loopback zenoh network."""
 
 import time
+from functools import partial
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from services.apn import service as apn_service
 from services.encoder import service as encoder_service
 from services.planner import service as planner_service
 from services.planner.roadmap import Roadmap
-from services.runtime import ModelInfo, ServiceContext
+from services.runtime import ModelInfo, ServiceContext, _info
 from services.sim.worlds import make_world
 from services.stack import free_port
 from shared.bus import BusConfig, Server, close_quietly, open_session, service_key
@@ -45,6 +46,8 @@ def services():
 
             handlers["decode"] = counted
         server = Server(session, name, "x")
+        info = partial(_info, context, time.monotonic())  # what a client asks the image size of
+        server.serve(service_key(name, model.task, "info/x"), info, per_instance=False)
         for operation, handler in handlers.items():
             server.serve(service_key(name, model.task, operation), handler)
         servers.append(server)

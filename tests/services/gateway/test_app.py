@@ -10,11 +10,11 @@ from PIL import Image, ImageFile
 from pydantic import ValidationError
 
 from services.gateway.app import BodyLimit, error_body
-from services.gateway.planning import decode_b64_image
+from services.gateway.planning import decode_b64_image, image_input
 from services.gateway.schemas import PlanRequest
 from shared.bus import RemoteError, ServiceUnavailable
 from shared.messages import ErrorReply
-from shared.validation import FRAME_DETAIL, FieldError
+from shared.validation import FRAME_DETAIL, FieldError, decode_frame, frame_size
 
 
 def png_b64(size: int, mode: str = "RGB") -> str:
@@ -28,10 +28,12 @@ def test_images_decode_from_base64_with_or_without_a_data_url():
     assert decode_b64_image("start.image", "data:image/png;base64," + png_b64(8), 8)[0, 0, 0] == 255
 
 
-def test_a_camera_frame_may_have_any_size_within_bounds():
-    assert decode_b64_image("start.image", png_b64(320)).shape == (320, 320, 3)
+def test_an_image_at_the_models_size_is_decoded_a_frame_goes_on_as_its_bytes():
+    assert image_input("start.image", png_b64(64), 64).shape == (64, 64, 3)
+    frame = image_input("start.image", png_b64(320), 64)
+    assert frame == base64.b64decode(png_b64(320))  # the client's bytes, for the encoder
     with pytest.raises(FieldError, match="expected 16 to 4096 pixels a side"):
-        decode_b64_image("start.image", png_b64(8))
+        image_input("start.image", png_b64(8), 64)
 
 
 def test_a_frame_that_would_decode_beyond_the_cap_is_refused_before_decoding(monkeypatch):
@@ -40,16 +42,18 @@ def test_a_frame_that_would_decode_beyond_the_cap_is_refused_before_decoding(mon
     decoded = []
     monkeypatch.setattr(ImageFile.ImageFile, "load", lambda img: decoded.append(img.size))
     with pytest.raises(FieldError, match=r"start.image.*4096x4096: it would decode to 16777216"):
-        decode_b64_image("start.image", bomb)
+        image_input("start.image", bomb, 64)
+    with pytest.raises(FieldError, match=r"frames.0.*4096x4096: it would decode to 16777216"):
+        decode_frame("frames.0", base64.b64decode(bomb))  # the encoder's check, the same
     assert decoded == []  # refused from its header
 
 
 def test_a_large_jpeg_frame_decodes_reduced_but_keeps_its_detail():
     buffer = io.BytesIO()
     Image.new("RGB", (4096, 3072), "red").save(buffer, format="JPEG", quality=80)
-    text = base64.b64encode(buffer.getvalue()).decode()
     # by 4 in the decoder: by 8 the shorter side would fall below FRAME_DETAIL
-    assert decode_b64_image("start.image", text).shape == (768, 1024, 3)
+    assert frame_size("start.image", buffer.getvalue()) == (1024, 768)
+    assert decode_frame("frames.0", buffer.getvalue()).shape == (768, 1024, 3)
     assert 768 // 2 < FRAME_DETAIL <= 768
 
 
