@@ -13,6 +13,7 @@ by status, Retry-After on every 429/503, heavy pairs served per second, /health'
 the stack's memory (VmRSS summed over its processes) idle, at most and after.
 
     .venv/bin/python benchmarks/bench_frame_flood.py [--heavy 8] [--seconds 60] [--side 4096]
+        [--encoders 1]
 """
 
 from __future__ import annotations
@@ -160,6 +161,7 @@ def run(url: str, args: argparse.Namespace, pids: list[int]) -> dict:
     by_status = Counter(status for status, _, _ in heavy_answers)
     refused = [a for a in heavy_answers if a[0] in (429, 503)]
     return {
+        "encoders": args.encoders,
         "side": args.side,
         "frame_kb": round(len(images[0]) * 3 / 4 / 1024),
         "heavy_clients": args.heavy,
@@ -185,13 +187,16 @@ def main() -> None:
     parser.add_argument("--side", type=int, default=4096)
     parser.add_argument("--frames", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--encoders", type=int, default=1, help="encoder replicas (lsr up's)")
     parser.add_argument("--url", help="a running gateway (memory not measured); default: a stack")
     args = parser.parse_args()
     if args.url:
         print(json.dumps(run(args.url, args, [])))
         return
     with tempfile.TemporaryDirectory() as logs:
-        config = StackConfig(port=free_port(), zenoh_port=free_port(), log_dir=Path(logs))
+        config = StackConfig(
+            port=free_port(), zenoh_port=free_port(), log_dir=Path(logs), encoders=args.encoders
+        )
         with Stack(config) as stack:
             stack.start()
             stack.wait_healthy(120)

@@ -72,6 +72,9 @@ class StackConfig:
     # LSR_ZENOH_CONFIG (the router: router.json5). None: an open bus, for loopback development.
     zenoh_access: Path | None = None
     process_per_task: bool = False  # True: a process per role and task, not per role
+    # Encoder processes (replicas: the same keys, callers spread over them), for more camera
+    # frames a second: each decodes and registers frames in its own worker
+    encoders: int = 1
 
     def __post_init__(self) -> None:
         self.models = tuple(Path(m) for m in self.models)
@@ -80,6 +83,8 @@ class StackConfig:
         tasks = [model_task(m) for m in self.models]
         if len(set(tasks)) != len(tasks):
             raise ValueError(f"two model folders serve the same task: {tasks}")
+        if self.encoders < 1:
+            raise ValueError(f"encoders must be at least 1, got {self.encoders}")
 
     @property
     def tasks(self) -> list[str]:
@@ -159,6 +164,11 @@ class Stack:
         args = ["serve", service, *(a for m in models for a in ("--model", str(m)))]
         return self._spawn(name, args, service)
 
+    def _replicas(self, service: str, name: str) -> list[str]:
+        """The process names of `service`: `name`, then `name-2`, ... for encoder replicas."""
+        count = self.config.encoders if service == "encoder" else 1
+        return [name, *(f"{name}-{k}" for k in range(2, count + 1))]
+
     def models_needing(self, service: str) -> list[Path]:
         return [m for m in self.config.models if service in model_services(m)]
 
@@ -172,11 +182,13 @@ class Stack:
         if self.config.process_per_task:
             for model in self.config.models:
                 for service in model_services(model):
-                    self.start_service(service, model=model)
+                    for name in self._replicas(service, f"{service}-{model_task(model)}"):
+                        self.start_service(service, name, model=model)
         else:
             for service in SERVICES:
                 if self.models_needing(service):
-                    self.start_service(service)
+                    for name in self._replicas(service, service):
+                        self.start_service(service, name)
         self.start_gateway()
 
     def _wait_for_router(self, timeout_s: float = 15.0) -> None:

@@ -49,6 +49,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         models=models,
         zenoh_access=args.zenoh_access,
         process_per_task=args.process_per_task,
+        encoders=args.encoders,
     )
     return run_up(config)
 
@@ -102,5 +103,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--process-per-task",
         action="store_true",
         help="a process per service and task (default: one per service for every task)",
+    )
+    up.add_argument(
+        "--encoders",
+        type=int,
+        default=1,
+        help="encoder processes (replicas), for more camera frames a second (default 1)",
     )
     up.set_defaults(handler=cmd_up)
