@@ -227,6 +227,32 @@ def test_an_api_error_is_shown_next_to_its_field(page, tmp_path):
     assert page.locator(".plan").count() == 0
 
 
+def test_a_render_that_comes_late_leaves_an_uploaded_end_and_its_error_alone(page, tmp_path):
+    """A state's render still on its way when an image replaces the end (slow under load)."""
+    page, console = page
+    console.expect(422)
+    held: list = []
+    page.route("**/render", lambda route: held.append(route))
+    page.click("#goal-random")  # the new state's render, held
+    for _ in range(200):
+        if held:
+            break
+        page.wait_for_timeout(50)
+    assert held, "the goal's render was not asked for"
+    Image.new("RGB", (8, 8), "white").save(tmp_path / "small.png")
+    uploaded = base64.b64encode((tmp_path / "small.png").read_bytes()).decode()
+    page.set_input_files("#goal-upload", str(tmp_path / "small.png"))
+    page.click("#plan-btn")
+    expect(page.locator("#goal-error")).to_contain_text("16 to 4096 pixels")
+    for route in held:
+        route.continue_()
+    page.unroute("**/render")
+    page.wait_for_load_state("networkidle")
+    expect(page.locator("#goal-error")).to_contain_text("16 to 4096 pixels")
+    expect(page.locator("#goal-source")).to_have_text("uploaded image")
+    assert page.locator("#goal-image").get_attribute("src").endswith(uploaded)
+
+
 def test_cloth_folds_from_checkboxes(page):
     page, _ = page
     page.select_option("#task", "cloth_folding")

@@ -205,9 +205,12 @@ function endpointBody(end) {
   return end.image ? { image: end.image } : { state: end.state };
 }
 
-let renderSeq = 0;
+// Each end's renders in order: a reply that comes after the end has changed (another state,
+// an uploaded image) touches neither its picture nor its error slot, which may by then hold
+// a plan's error for the new end.
 async function refresh(end) {
   drawEditor(end);
+  const seq = end.renderSeq = (end.renderSeq || 0) + 1;
   if (end.image) {
     end.preview.src = end.image;
     end.source.textContent = "uploaded image";
@@ -219,13 +222,14 @@ async function refresh(end) {
     return;
   }
   end.source.textContent = stateText(end.state);
-  const seq = ++renderSeq;
   try {
     const reply = await api("POST", "/render", { task: ui.task, state: end.state, seed: 0 });
     const body = await reply.json();
-    if (seq <= renderSeq) end.preview.src = "data:image/png;base64," + body.image;
+    if (seq !== end.renderSeq) return;
+    end.preview.src = "data:image/png;base64," + body.image;
     $(end.name + "-error").textContent = "";
   } catch (err) {
+    if (seq !== end.renderSeq) return;
     $(end.name + "-error").textContent = "";
     showError(err, end.name + "-error");
   }
