@@ -4,7 +4,8 @@ Starts router, services and gateway (`lsr up`'s launcher) on free loopback ports
 models (or uses a running gateway with --url). Renders box-stacking camera frames through
 /render (`"frame": true`) and resizes them to --side px JPEG (quality 90), as a higher-
 resolution camera would give them. Then:
-1. idle: one light client asks /plan from states every --every s for --idle-seconds;
+1. alone: one client posts frame pairs one after another for --idle-seconds (end-to-end time of
+   a pair); then idle: one light client asks /plan from states every --every s as long;
 2. flood: --heavy clients post pairs of those frames as fast as they are answered (no client
    waits for Retry-After: a flood) for --seconds, while the light client goes on as in 1 and
    /health is asked every second.
@@ -136,6 +137,7 @@ def light_figures(answers: list) -> dict:
 def run(url: str, args: argparse.Namespace, pids: list[int]) -> dict:
     images, states = frames(url, args.frames, args.side, args.seed)
     idle_rss = rss_mb(pids)
+    one = flood(url, images, 0, time.monotonic() + args.idle_seconds)  # one pair at a time
     idle = light_client(url, states, args.every, time.monotonic() + args.idle_seconds)
     until = time.monotonic() + args.seconds
     memory, health = [], Counter()
@@ -166,6 +168,10 @@ def run(url: str, args: argparse.Namespace, pids: list[int]) -> dict:
         "frame_kb": round(len(images[0]) * 3 / 4 / 1024),
         "heavy_clients": args.heavy,
         "seconds": args.seconds,
+        "heavy_alone": {
+            **(ms([t for s, _, t in one if s == 200]) or {}),
+            "statuses": dict(Counter(s for s, _, _ in one)),
+        },
         "light_idle": light_figures(idle),
         "light_flood": light_figures(light),
         "heavy_by_status": dict(sorted(by_status.items())),

@@ -402,6 +402,7 @@ class Batched(Generic[R]):
     run: Callable[[list[R]], list[BaseModel]]
     max_batch: int = 8
     max_queued: int | None = None
+    nice: int = 0  # its worker thread's niceness (Linux): heavy work yields the CPU to light
 
 
 Operation = Handler | Batched  # what a service answers one of its keys with
@@ -470,6 +471,9 @@ class Server:
         threading.Thread(target=self._loop, args=(pending, work), name=key, daemon=True).start()
 
     def _loop(self, pending: Pending, work: Batched) -> None:
+        if work.nice:
+            with contextlib.suppress(AttributeError, OSError):  # not Linux: as it is
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), work.nice)
         while (batch := self._next_batch(pending, work.max_batch)) is not None:
             queries = [query for _, query in batch]
             try:

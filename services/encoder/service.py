@@ -41,6 +41,8 @@ MAX_BATCH = 256
 # a queue of their own: at most this many queries wait, the next ones are told to come back
 # (Batched.max_queued), and images at the model's size (`encode`) never wait behind them.
 MAX_FRAME_QUERIES = 4
+# ... and its worker runs at a lower priority: where both wait for a core, `encode` gets it
+FRAMES_NICE = 10
 
 
 def setup(context: ServiceContext) -> dict[str, Operation]:
@@ -98,7 +100,7 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
 
     return {
         "encode": Batched(parse_encode, encode, max_batch=8),
-        "frames": Batched(parse_frames, encode, max_batch=4, max_queued=MAX_FRAME_QUERIES),
+        "frames": Batched(parse_frames, encode, 2, MAX_FRAME_QUERIES, FRAMES_NICE),
         "decode": decode,
-        "register": Batched(parse_frames, register, max_batch=1, max_queued=MAX_FRAME_QUERIES),
+        "register": Batched(parse_frames, register, 1, MAX_FRAME_QUERIES, FRAMES_NICE),
     }
