@@ -9,6 +9,7 @@ handler time (which holds the decoding and registration), the request sizes, and
 alone per frame in one process.
 
     .venv/bin/python benchmarks/bench_plan_frames.py [--rounds 6] [--per-round 100] [--pairs 50]
+        [--concurrency 1]
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ def main() -> None:
     parser.add_argument("--per-round", type=int, default=100)
     parser.add_argument("--pairs", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--concurrency", type=int, default=1, help="clients at once")
     args = parser.parse_args()
     kinds = {
         "views (64 px)": request_bodies(args.pairs, 64, args.seed),
@@ -77,18 +79,23 @@ def main() -> None:
             stack.wait_healthy(90)
             for _ in range(args.rounds):
                 for kind, bodies in kinds.items():
-                    runs[kind].append(through_stack(config.url, bodies, args.per_round, 1))
+                    runs[kind].append(
+                        through_stack(config.url, bodies, args.per_round, args.concurrency)
+                    )
     print(
-        f"model {args.model}, {args.rounds} rounds of {args.per_round} requests each, concurrency 1"
+        f"model {args.model}, {args.rounds} rounds of {args.per_round} requests each, "
+        f"concurrency {args.concurrency}"
     )
     print(
-        "| images | base64 bytes (p50) | errors | /plan p50 / p99 (ms) | encode handler p50 (ms) |"
+        "| images | base64 bytes (p50) | errors | /plan p50 / p99 (ms) | requests/s "
+        "| encode handler p50 (ms) |"
     )
-    print("| --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- |")
     summary = {}
     for kind, rounds in runs.items():
         p50 = float(np.median([r["p50_ms"] for r in rounds]))
         p99 = float(np.median([r["p99_ms"] for r in rounds]))
+        rate = float(np.median([r["requests_per_s"] for r in rounds]))
         # views go to the encoder's `encode`, frames (compressed) to its `frames` operation
         operation = "frames" if "frames" in rounds[0]["p50_breakdown_ms"] else "encode"
         handler = float(np.median([r["p50_breakdown_ms"][f"{operation}-handler"] for r in rounds]))
@@ -96,10 +103,14 @@ def main() -> None:
         summary[kind] = {
             "p50_ms": p50,
             "p99_ms": p99,
+            "requests_per_s": rate,
             "encode_handler_ms": handler,
             "errors": errors,
         }
-        print(f"| {kind} | {sizes[kind]} | {errors} | {p50:.1f} / {p99:.1f} | {handler:.1f} |")
+        print(
+            f"| {kind} | {sizes[kind]} | {errors} | {p50:.1f} / {p99:.1f} | {rate:.1f} "
+            f"| {handler:.1f} |"
+        )
     print(json.dumps(summary))
 
 

@@ -382,7 +382,31 @@ def encoder_image_size(session: zenoh.Session, task: str, timeout_s: float = 1.5
 
 
 Handler = Callable[[bytes], BaseModel]
-Pending = queue.Queue[tuple[float, zenoh.Query] | None]
+Pending = queue.Queue[tuple[float, zenoh.Query, float] | None]  # arrived, query, its cost
+
+
+class Backlog:
+    """What one operation's queue holds, in the cost of its queries (`Batched.cost`), against
+    its bound (`Batched.max_queued`; None: none). A query is let in while the queue holds
+    less than the bound with it, or when the queue is empty (however costly it is alone)."""
+
+    def __init__(self, limit: float | None) -> None:
+        self.limit = limit
+        self.cost = 0.0
+        self._lock = threading.Lock()
+
+    def admit(self, cost: float) -> bool:
+        with self._lock:
+            if self.limit is not None and self.cost > 0 and self.cost + cost > self.limit:
+                return False
+            self.cost += cost
+            return True
+
+    def done(self, cost: float) -> None:
+        with self._lock:
+            self.cost = max(0.0, self.cost - cost)
+
+
 R = TypeVar("R")
 
 
@@ -393,16 +417,18 @@ class Batched(Generic[R]):
 
     `parse` turns one payload into its request, raising for bad input (that query alone gets
     the error); `run` turns the requests of a batch into their replies, in order.
-    `max_queued`: a query that finds that many waiting is answered "unavailable" at once (the
-    gateway's 503 with Retry-After), so that heavy work neither piles up in memory nor holds
-    its callers until their deadline.
+    `max_queued`: a query that would take the queries waiting beyond this cost is answered
+    "unavailable" at once (the gateway's 503 with Retry-After), so that heavy work neither
+    piles up nor holds its callers until their deadline; `cost` prices a payload (from its
+    header: pixels, say; unset: each query costs 1).
     """
 
     parse: Callable[[bytes], R]
     run: Callable[[list[R]], list[BaseModel]]
     max_batch: int = 8
-    max_queued: int | None = None
+    max_queued: float | None = None
     nice: int = 0  # its worker thread's niceness (Linux): heavy work yields the CPU to light
+    cost: Callable[[bytes], float] | None = None
 
 
 Operation = Handler | Batched  # what a service answers one of its keys with
@@ -445,15 +471,20 @@ class Server:
         """Answer `key` (as a complete queryable) and, for callers that pick, `key/instance`."""
         work = handler if isinstance(handler, Batched) else Batched(handler, list, max_batch=1)
         pending: Pending = queue.Queue()
-        operation, max_queued = key.rsplit("/", 1)[-1], work.max_queued
+        backlog = Backlog(work.max_queued)
+        operation = key.rsplit("/", 1)[-1]
 
         def arrived(query: zenoh.Query) -> None:
-            if max_queued is not None and pending.qsize() >= max_queued:
+            cost = 1.0
+            if work.cost is not None:
+                with contextlib.suppress(Exception):  # unreadable: its parse will say why
+                    cost = work.cost(query.payload.to_bytes() if query.payload else b"")
+            if not backlog.admit(cost):
                 busy = ErrorReply(
                     code="unavailable",
                     field=self.service,
-                    message=f"{self.service} is busy: {max_queued} {operation} queries wait "
-                    "already; try again in a second",
+                    message=f"{self.service} is busy: its {operation} queue is full; try again "
+                    "in a second",
                 )
                 try:
                     query.reply_err(pack(busy), encoding=MSGPACK)
@@ -462,19 +493,22 @@ class Server:
                 with self._expired_lock:
                     self.busy += 1
                 return
-            pending.put((time.monotonic(), query))
+            pending.put((time.monotonic(), query, cost))
 
         keys = [key, f"{key}/{self.instance}"] if per_instance else [key]
         for k in keys:
             self._queryables.append(self.session.declare_queryable(k, arrived, complete=True))
         self._queues.append(pending)
-        threading.Thread(target=self._loop, args=(pending, work), name=key, daemon=True).start()
+        thread = threading.Thread(
+            target=self._loop, args=(pending, work, backlog), name=key, daemon=True
+        )
+        thread.start()
 
-    def _loop(self, pending: Pending, work: Batched) -> None:
+    def _loop(self, pending: Pending, work: Batched, backlog: Backlog) -> None:
         if work.nice:
             with contextlib.suppress(AttributeError, OSError):  # not Linux: as it is
                 os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), work.nice)
-        while (batch := self._next_batch(pending, work.max_batch)) is not None:
+        while (batch := self._next_batch(pending, work.max_batch, backlog)) is not None:
             queries = [query for _, query in batch]
             try:
                 # The batch works until the latest of its callers stops waiting: long work
@@ -489,10 +523,10 @@ class Server:
                 finish(queries)
 
     def _next_batch(
-        self, pending: Pending, max_batch: int
+        self, pending: Pending, max_batch: int, backlog: Backlog
     ) -> list[tuple[float, zenoh.Query]] | None:
         """The oldest query and those queued behind it (with their arrival times), expired
-        ones dropped; None: stop."""
+        ones dropped; None: stop. Taken off the queue, they leave its backlog."""
         items = [pending.get()]
         while items[-1] is not None and len(items) < max_batch:
             try:
@@ -505,7 +539,8 @@ class Server:
                 return None
             pending.put(None)
         live = []
-        for arrived, query in items:  # type: ignore[misc]
+        for arrived, query, cost in items:  # type: ignore[misc]
+            backlog.done(cost)
             if time.monotonic() - arrived <= budget_s(query):
                 live.append((arrived, query))
                 continue

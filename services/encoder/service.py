@@ -34,15 +34,25 @@ from shared.validation import (
     check_latents,
     check_task,
     decode_frame,
+    frame_size,
 )
 
 MAX_BATCH = 256
-# Camera frames are heavy work (a 4096 px JPEG: ~15 ms to decode reduced, ~5 to register) with
-# a queue of their own: at most this many queries wait, the next ones are told to come back
-# (Batched.max_queued), and images at the model's size (`encode`) never wait behind them.
-MAX_FRAME_QUERIES = 4
-# ... and its worker runs at a lower priority: where both wait for a core, `encode` gets it
+# Camera frames are heavy work (a 4096 px JPEG: ~15 ms to decode reduced, ~5 to register; about
+# 30 ms a megapixel decoded, on this 2-core CPU) with a queue of their own, bounded by the pixels
+# it holds (read from the frames' headers): about half a second of work waits at most, the
+# next query is told to come back (Batched.max_queued), and images at the model's size
+# (`encode`) never wait behind frames. Its worker runs at a lower priority: where both wait
+# for a core, `encode` gets it.
+MAX_QUEUED_MEGAPIXELS = 16.0
 FRAMES_NICE = 10
+
+
+def megapixels(payload: bytes) -> float:
+    """What a query of frames costs: the pixels its frames decode to (a JPEG reduced)."""
+    request = unpack(payload, FramesRequest)
+    sizes = [frame_size(f"frames.{i}", data) for i, data in enumerate(request.frames)]
+    return sum(w * h for w, h in sizes) / 1e6
 
 
 def setup(context: ServiceContext) -> dict[str, Operation]:
@@ -100,7 +110,9 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
 
     return {
         "encode": Batched(parse_encode, encode, max_batch=8),
-        "frames": Batched(parse_frames, encode, 2, MAX_FRAME_QUERIES, FRAMES_NICE),
+        "frames": Batched(parse_frames, encode, 2, MAX_QUEUED_MEGAPIXELS, FRAMES_NICE, megapixels),
         "decode": decode,
-        "register": Batched(parse_frames, register, 1, MAX_FRAME_QUERIES, FRAMES_NICE),
+        "register": Batched(
+            parse_frames, register, 1, MAX_QUEUED_MEGAPIXELS, FRAMES_NICE, megapixels
+        ),
     }

@@ -14,6 +14,7 @@ import pytest
 from services.stack import free_port
 from shared.bus import (
     MSGPACK,
+    Backlog,
     Batched,
     BusConfig,
     RemoteError,
@@ -332,3 +333,14 @@ def test_queries_held_by_a_replica_that_dies_are_answered_by_a_live_one(endpoint
         doomed.kill()
         doomed.wait(10)
         server.close()
+
+
+def test_a_backlog_holds_up_to_its_cost_and_always_one_query():
+    backlog = Backlog(16.0)
+    assert backlog.admit(25.0)  # alone, however costly: a queue never refuses everything
+    assert not backlog.admit(0.3)
+    backlog.done(25.0)
+    assert backlog.admit(10.0) and backlog.admit(6.0) and not backlog.admit(0.5)
+    backlog.done(10.0)
+    assert backlog.admit(0.5)
+    assert all(Backlog(None).admit(1e9) for _ in range(3))  # unbounded
