@@ -17,7 +17,14 @@ import numpy as np
 import zenoh
 from pydantic import BaseModel
 
-from shared.bus import CallTiming, PendingCall, Replicas, call, encoder_image_size
+from shared.bus import (
+    CallTiming,
+    PendingCall,
+    RemoteError,
+    Replicas,
+    call,
+    encoder_image_size,
+)
 from shared.images import encode_frame
 from shared.lru import LruCache
 from shared.messages import (
@@ -45,6 +52,25 @@ from shared.tasks import get_task
 # frames first), or a camera frame's PNG/JPEG bytes as its camera or client gave them
 Image = np.ndarray | bytes
 SIZE_TTL_S = 10.0  # a model's image size is asked again after this long (a new model)
+
+
+class FrameRefused(ValueError):
+    """A camera frame the encoder could not decode; `index`: its place among the images given
+    (the gateway names the field of it)."""
+
+    def __init__(self, index: int, message: str) -> None:
+        super().__init__(message)
+        self.index = index
+
+    @classmethod
+    def of(cls, exc: RemoteError, rows: list[int]) -> RemoteError | FrameRefused:
+        """The frame `exc` names (`frames.K`, K among `rows`), or `exc` when it names none."""
+        field = exc.error.field or ""
+        k = field.removeprefix("frames.")
+        if exc.error.code != "bad_request" or not field.startswith("frames.") or not k.isdigit():
+            return exc
+        message = exc.error.message.removeprefix(f"{field}: ")
+        return cls(rows[int(k)], message) if int(k) < len(rows) else exc
 
 
 class PlanOutcome(NamedTuple):
@@ -125,9 +151,13 @@ class PlanningClient:
         each that could not be registered was not (None where it was)."""
         sent = [f if isinstance(f, bytes) else encode_frame(f) for f in frames]
         request = FramesRequest(task=self.task_name, frames=sent)
-        reply: RegisterReply = self._call(
+        registering = self._call(
             "encoder", "register", request, RegisterReply, deadline or self.deadline()
-        ).result()
+        )
+        try:
+            reply: RegisterReply = registering.result()
+        except RemoteError as exc:
+            raise FrameRefused.of(exc, list(range(len(frames)))) from None
         return reply.images.numpy(), reply.refused or [None] * len(frames)
 
     def _encode(
@@ -160,7 +190,10 @@ class PlanningClient:
         errors: list[Any] = [None] * len(images)
         refused: list[str | None] = [None] * len(images)
         for operation, encoding in pending.items():
-            reply: EncodeReply = encoding.result()
+            try:
+                reply: EncodeReply = encoding.result()
+            except RemoteError as exc:  # a frame the encoder could not decode: which one
+                raise FrameRefused.of(exc, groups[operation]) from None
             for k, i in enumerate(groups[operation]):
                 latents[i] = reply.latents.numpy()[k]
                 errors[i] = None if reply.errors is None else reply.errors.numpy()[k]

@@ -38,7 +38,7 @@ from shared.bus import (
     instances,
     robot_plan_key,
 )
-from shared.client import Image, PlanningClient
+from shared.client import FrameRefused, Image, PlanningClient
 from shared.dataset import DatasetError
 from shared.images import ImageError, PngCache, decode_image, png_b64
 from shared.messages import RunRequest, WireArray
@@ -195,15 +195,18 @@ class Gateway:
         endpoints = {"start": request.start, "goal": request.goal}
         images = self._images(request.task, endpoints, deadline)
         client = self.client(request.task)
-        outcome = client.plan_with_reason(
-            images["start"],
-            images["goal"],
-            request.max_plans,
-            request.include_images,
-            deadline,
-            request.expect_node,
-            request.avoid_steps,
-        )
+        try:
+            outcome = client.plan_with_reason(
+                images["start"],
+                images["goal"],
+                request.max_plans,
+                request.include_images,
+                deadline,
+                request.expect_node,
+                request.avoid_steps,
+            )
+        except FrameRefused as exc:  # decoded only in the encoder: named here
+            raise FieldError(f"{['start', 'goal'][exc.index]}.image", str(exc)) from None
         response = PlanResponse(
             plan_id=uuid.uuid4().hex,
             plans=[
@@ -298,7 +301,10 @@ class Gateway:
         image = image_input(field, text, size)
         if isinstance(image, np.ndarray):
             return image
-        (registered,), (why,) = self.client(task).register([image], deadline)
+        try:
+            (registered,), (why,) = self.client(task).register([image], deadline)
+        except FrameRefused as exc:
+            raise FieldError(field, str(exc)) from None
         if why is not None:
             raise FieldError(field, why)
         return registered

@@ -421,6 +421,12 @@ BAD_INPUTS = [
     ),
     ("too small", {**GOOD, "start": {"image": image_of((15, 64))}}, 422, "image"),
     ("transparent RGBA", {**GOOD, "start": {"image": image_of((64, 64), "RGBA")}}, 422, "image"),
+    (  # a frame: decoded only in the encoder, its field still named
+        "transparent RGBA frame",
+        {**GOOD, "goal": {"image": image_of((400, 400), "RGBA")}},
+        422,
+        "goal",
+    ),
     ("max_plans out of range", {**GOOD, "max_plans": 0}, 422, "max_plans"),
     ("max_plans not a number", {**GOOD, "max_plans": "many"}, 422, "max_plans"),
     ("robot_id not a key", {**GOOD, "robot_id": "a/b*"}, 422, "robot_id"),
