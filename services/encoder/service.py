@@ -38,12 +38,11 @@ from shared.validation import (
 )
 
 MAX_BATCH = 256
-# Camera frames are heavy work (a 4096 px JPEG: ~15 ms to decode reduced, ~5 to register; about
-# 30 ms a megapixel decoded, on this 2-core CPU) with a queue of their own, bounded by the pixels
-# it holds (read from the frames' headers): about half a second of work waits at most, the
-# next query is told to come back (Batched.max_queued), and images at the model's size
-# (`encode`) never wait behind frames. Its worker runs at a lower priority: where both wait
-# for a core, `encode` gets it.
+# Camera frames are heavy work (a 4096 px JPEG, 0.8 megapixels decoded reduced: about 20 ms
+# idle to decode and register) with a queue of their own, bounded by the pixels it holds (read
+# from the frames' headers; about 20 such frames, 0.4 s of work): the next query is told to
+# come back (Batched.max_queued), and images at the model's size (`encode`) never wait behind
+# frames. Its worker runs at a lower priority: where both wait for a core, `encode` gets it.
 MAX_QUEUED_MEGAPIXELS = 16.0
 FRAMES_NICE = 10
 
@@ -108,11 +107,10 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
         images = WireArray.of(decode_latents(vae, latents))
         return DecodeReply(images=images, model_id=context.model.model_id)
 
+    frames_queue = {"max_queued": MAX_QUEUED_MEGAPIXELS, "nice": FRAMES_NICE, "cost": megapixels}
     return {
         "encode": Batched(parse_encode, encode, max_batch=8),
-        "frames": Batched(parse_frames, encode, 2, MAX_QUEUED_MEGAPIXELS, FRAMES_NICE, megapixels),
+        "frames": Batched(parse_frames, encode, max_batch=2, **frames_queue),
         "decode": decode,
-        "register": Batched(
-            parse_frames, register, 1, MAX_QUEUED_MEGAPIXELS, FRAMES_NICE, megapixels
-        ),
+        "register": Batched(parse_frames, register, max_batch=1, **frames_queue),
     }
