@@ -142,14 +142,14 @@ class Admission:
     """Sheds what the gateway cannot serve in time, quickly, instead of queueing without bound.
 
     At most `limit` requests to `paths` are in progress; the next ones wait for a slot, at most
-    `queue` of them and each at most `wait_s`. With `heavy` set it takes only heavy requests
-    (camera frames: bodies over `light_bytes`) or only light ones, so that each kind has its own
-    share and a flood of frames never takes the slots of plans from states or views. A request
-    that would wait longer than that (by the
-    recent time per request and the queue ahead of it), or find the queue full, gets 503 at once
-    (`Retry-After: 1`); one whose wait runs out gets it then. A waiting request holds no body in
-    memory (it is not read yet). Each request's arrival time goes into its scope (`ARRIVED`),
-    so that its deadline counts the wait.
+    `queue` of them and each at most `wait_s`. A request that would wait longer than that (by
+    the recent time per request and the queue ahead of it), or find the queue full, gets 503 at
+    once (`Retry-After: 1`); one whose wait runs out gets it then. With `heavy` set a share
+    takes only heavy requests (camera frames: bodies over `light_bytes`) or only light ones, so
+    that a flood of frames never takes the slots of plans from states or views. A waiting
+    request holds no body in memory (it is not read yet). Each request's arrival time goes into
+    its scope (`ARRIVED`, set by the first share it meets), so that its deadline counts the
+    wait.
     """
 
     def __init__(

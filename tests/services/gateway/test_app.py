@@ -10,6 +10,7 @@ from PIL import Image, ImageFile
 from pydantic import ValidationError
 
 from services.gateway.app import BodyLimit, error_body
+from services.gateway.middleware import Admission
 from services.gateway.planning import decode_b64_image, image_input
 from services.gateway.schemas import PlanRequest
 from shared.bus import RemoteError, ServiceUnavailable
@@ -106,3 +107,20 @@ def test_body_limit_refuses_declared_and_streamed_bodies():
 
     reply = client.post("/echo", content=chunks(), headers={"content-type": "application/json"})
     assert reply.status_code == 413 and "100 bytes" in reply.json()["detail"]
+
+
+def test_admission_shares_by_declared_body_size():
+    light, heavy, every = (
+        Admission(None, frozenset({"/plan"}), 1, 1, 1.0, heavy=kind, light_bytes=1000)
+        for kind in (False, True, None)
+    )
+
+    def scope(path: str, length: bytes | None) -> dict:
+        headers = [] if length is None else [(b"content-length", length)]
+        return {"type": "http", "path": path, "headers": headers}
+
+    assert light.takes(scope("/plan", b"1000")) and not heavy.takes(scope("/plan", b"1000"))
+    assert heavy.takes(scope("/plan", b"1001")) and not light.takes(scope("/plan", b"1001"))
+    assert heavy.takes(scope("/plan", None))  # a body of undeclared length: frames, maybe
+    assert every.takes(scope("/plan", b"5")) and every.takes(scope("/plan", None))
+    assert not any(a.takes(scope("/tasks", b"5")) for a in (light, heavy, every))
