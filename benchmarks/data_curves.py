@@ -100,6 +100,11 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
         record = json.loads(path.read_text())
     times: dict[str, Any] = record.setdefault("times", {})
     data, model = run / "train", run / "model"
+
+    def save() -> None:  # after each stage: an interrupted run keeps what it measured
+        run.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(record, indent=1) + "\n")
+
     if "defaults" not in record:
         if not (data / "manifest.json").exists():
             lsr(["data", "generate", "--task", args.task, "--pairs", str(pairs), "--seed",
@@ -107,6 +112,7 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
                  str(data)], times, "generate")  # fmt: skip
         record["trained"] = train(model, data, seed, times, "train_model")
         record["defaults"] = measure(args, model, test, times, "")
+        save()
     grown = run / "explored"
     if args.explore and "explored" not in record:
         shutil.rmtree(grown, ignore_errors=True)
@@ -114,14 +120,14 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
         lsr(["explore", "--model", str(grown), "--actions", str(args.explore), "--seed",
              str(data_seed)], times, "explore")  # fmt: skip
         record["explored"] = measure(args, grown, test, times, "_explored")
+        save()
     if args.retrain and "explored" in record and "retrained" not in record:
         merged, again = run / "merged", run / "retrained"
         lsr(["data", "merge", "--data", str(data), "--data", str(grown / "experience" /
              "explore"), "--overwrite", "--out", str(merged)], times, "merge")  # fmt: skip
         record["retrained_model"] = train(again, merged, seed, times, "train_model_retrained")
         record["retrained"] = measure(args, again, test, times, "_retrained")
-    run.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(record, indent=1) + "\n")
+        save()
     return record
 
 
