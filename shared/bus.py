@@ -464,7 +464,6 @@ class Server:
         self._queryables: list[zenoh.Queryable] = []
         self._queues: list[Pending] = []
         self.expired = 0  # queries dropped because their caller had stopped waiting
-        self.busy = 0  # queries turned away because their queue was full
         self._expired_lock = threading.Lock()
 
     def serve(self, key: str, handler: Operation, per_instance: bool = True) -> None:
@@ -490,8 +489,6 @@ class Server:
                     query.reply_err(pack(busy), encoding=MSGPACK)
                 finally:
                     finish([query])
-                with self._expired_lock:
-                    self.busy += 1
                 return
             pending.put((time.monotonic(), query, cost))
 
