@@ -11,6 +11,7 @@ with a reason that says which markers were missing or what was implausible.
 
 from __future__ import annotations
 
+import functools
 import threading
 from dataclasses import dataclass, field
 
@@ -21,6 +22,10 @@ from shared.workcell import Workcell, marker_cells
 
 NOT_FOUND = "the table markers were not found"
 _THRESHOLD_WINDOW = 23  # the detector's widest adaptive threshold window (OpenCV's default)
+# A marker whose corners moved less than this (frame px) since the last frame is taken as found
+# there, without the detector: the detector's own corners lie about as close to the true ones.
+TRACK_PX = 0.5
+HALF_CELL_MARGIN = 0.1  # px: a marker's half cell this near x.5 may refine with either window
 
 
 class RegistrationError(ValueError):
@@ -78,7 +83,8 @@ class Registration:
         if workcell is not None:
             self._corners = {m.id: np.asarray(m.corners, np.float64) for m in workcell.markers}
             self._cells = {m.id: _cell_centres(m.id, self._corners[m.id]) for m in workcell.markers}
-            self._sides = {m.id: marker_cells(m.id).shape[0] for m in workcell.markers}  # cells
+            self._bits = {m.id: marker_cells(m.id) for m in workcell.markers}
+            self._sides = {ident: bits.shape[0] for ident, bits in self._bits.items()}  # cells
             self._black = np.asarray(workcell.black, np.float64)
             self._white = np.asarray(workcell.white, np.float64)
 
@@ -105,24 +111,43 @@ class Registration:
     def detect(self, frame: np.ndarray) -> dict[int, np.ndarray]:
         """The workcell's markers found in `frame`: id -> (4, 2) frame corners.
 
-        First round the places where the last frame of this size showed each marker (one
-        camera's frames follow each other: about a third of the pixels), then in the whole frame for
-        those not found there, then at twice the scale: small, blurred markers far from the
+        A fixed camera's markers have not moved since its last frame of this size: those are
+        refined from where they were and read back, with no detector (`_tracked`). The others
+        are looked for round where the last frame showed them (about a third of the pixels),
+        then in the whole frame, then at twice the scale: small, blurred markers far from the
         camera decode there (every box-stacking state at `camera` registers with it; 5 of 288
         did not without). Every corner is then refined on the whole frame (`_refine`), so that
         where a marker was found does not move its corners."""
         gray = cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2GRAY)
-        found = self._near(gray, self._last.get(gray.shape, {}))
-        if len(found) < len(self._corners):
+        last = self._last.get(gray.shape, {})
+        tracked = self._tracked(gray, last)
+        found = self._near(gray, {i: q for i, q in last.items() if i not in tracked})
+        if len(tracked) + len(found) < len(self._corners):
             for ident, quad in self._markers(gray, 1.0).items():
-                found.setdefault(ident, quad)
-        if len(found) < len(self._corners):
+                if ident not in tracked:
+                    found.setdefault(ident, quad)
+        if len(tracked) + len(found) < len(self._corners):
             doubled = cv2.resize(gray, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR)
             for ident, quad in self._markers(doubled, 2.0).items():
-                found.setdefault(ident, quad)
+                if ident not in tracked:
+                    found.setdefault(ident, quad)
         found = {ident: _refine(gray, quad, self._sides[ident]) for ident, quad in found.items()}
+        found.update(tracked)
         if found:  # a plain dict swap: threads sharing this registration never see half of it
             self._last = {**self._last, gray.shape: found}
+        return found
+
+    def _tracked(self, gray: np.ndarray, last: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """The markers of `last` that have not moved (a fixed camera's next frame): each corner
+        refined from where it was, kept where it moved under TRACK_PX (then its start and the
+        detector's both lie within the refinement's reach of one corner, which both reach) and
+        the marker's cells still read as its own."""
+        found: dict[int, np.ndarray] = {}
+        for ident, quad in last.items():
+            refined = _refine(gray, quad, self._sides[ident])
+            moved = float(np.abs(refined - quad).max())
+            if moved < TRACK_PX and _reads(gray, refined, self._bits[ident], self.bounds):
+                found[ident] = refined
         return found
 
     def _near(self, gray: np.ndarray, last: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -351,15 +376,62 @@ def _refine(gray: np.ndarray, quad: np.ndarray, cells: int) -> np.ndarray:
     for one frame searched whole or in windows; this one converges to the same corner from
     either, 0.43 px from the true corner at the median on box-stacking frames at `camera`
     (0.68 before)."""
-    module = cv2.arcLength(quad.astype(np.float32), True) / (4 * cells)
-    half = max(2, round(0.5 * module))
-    corners = np.ascontiguousarray(quad, dtype=np.float32).reshape(-1, 1, 2)
     stop = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 0.001)
-    return (
-        cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), stop)
-        .reshape(4, 2)
-        .astype(np.float64)
+
+    def refined(start: np.ndarray, half: int) -> np.ndarray:
+        return cv2.cornerSubPix(gray, start.copy(), (half, half), (-1, -1), stop)
+
+    corners = np.ascontiguousarray(quad, dtype=np.float32).reshape(-1, 1, 2)
+    half = _half_cell(corners, cells)
+    for _ in range(3):  # the window is the refined corners' own
+        corners = refined(corners, half)
+        if _half_cell(corners, cells) == half:
+            break
+        half = _half_cell(corners, cells)
+    # a cell's half near x.5 pixels: both windows may be the corners' own, and which one a
+    # start reaches depends on the start; the larger one is taken, so that every start agrees
+    if abs(0.5 * _module(corners, cells) - (half + 0.5)) < HALF_CELL_MARGIN:
+        wider = refined(corners, half + 1)
+        if _half_cell(wider, cells) == half + 1:
+            corners = wider
+    return corners.reshape(4, 2).astype(np.float64)
+
+
+def _module(corners: np.ndarray, cells: int) -> float:
+    """A cell's side (frame pixels) of the marker at `corners`."""
+    outline = np.asarray(corners, np.float32).reshape(-1, 1, 2)
+    return float(cv2.arcLength(outline, True)) / (4 * cells)
+
+
+def _half_cell(corners: np.ndarray, cells: int) -> int:
+    """Half a cell of the marker at `corners`, in whole pixels (at least 2)."""
+    return max(2, round(0.5 * _module(corners, cells)))
+
+
+def _reads(gray: np.ndarray, quad: np.ndarray, bits: np.ndarray, bounds: Bounds) -> bool:
+    """Whether the marker at `quad` (frame corners) shows `bits`: every cell's centre pixel on
+    its side of the midpoint between the black and white cells' means, these at least
+    `bounds.min_contrast` apart."""
+    unit, centres = _cell_grid(bits.shape[0])
+    to_frame = cv2.getPerspectiveTransform(unit, quad.astype(np.float32))
+    points = np.rint(cv2.perspectiveTransform(centres, to_frame).reshape(-1, 2)).astype(int)
+    x = np.clip(points[:, 0], 0, gray.shape[1] - 1)
+    y = np.clip(points[:, 1], 0, gray.shape[0] - 1)
+    values = gray[y, x].astype(np.float64)
+    white = bits.reshape(-1)
+    dark, light = values[~white], values[white]
+    middle = (dark.mean() + light.mean()) / 2
+    return bool(
+        light.mean() - dark.mean() >= bounds.min_contrast and dark.max() < middle < light.min()
     )
+
+
+@functools.cache
+def _cell_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A marker of n x n cells: its corners and its cells' centres, in cells."""
+    unit = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
+    centres = np.stack(np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5), -1)
+    return unit, centres.reshape(-1, 1, 2).astype(np.float32)
 
 
 def _map_levels(image: np.ndarray, gain: np.ndarray, shift: np.ndarray) -> np.ndarray:

@@ -82,6 +82,46 @@ def test_frames_in_sequence_register_as_each_alone_at_every_size(task):
     assert set(tracked._last) == {(400, 400), (1200, 1200)}
 
 
+@pytest.mark.parametrize("task", TASKS)
+def test_a_fixed_camera_s_frames_are_tracked_without_the_detector_and_register_as_alone(
+    task, monkeypatch
+):
+    """Frames of one look (a fixed camera, the scene changing): after the first, every marker
+    is refined from where it was, no detector runs, and the corners are a whole-frame search's
+    within 0.1 canonical pixels; a marker painted over is looked for again, not tracked."""
+    rng = np.random.default_rng(5)
+    with make_world(task, 64, appearance="camera") as world:
+        world.reset(world.task.sample_state(rng), rng)
+        frames = [world.frame()]
+        for _ in range(4):
+            world.world.reset(world.task.sample_state(rng), rng)  # the same look
+            frames.append(world.frame())
+    tracked = Registration(world.task.workcell, 64)
+    tracked.register(frames[0])
+    searched = []
+    markers = Registration._markers
+    monkeypatch.setattr(
+        Registration, "_markers", lambda self, *a, **k: searched.append(1) or markers(self, *a, **k)
+    )
+    for frame in frames[1:]:
+        registered = tracked.register(frame)
+        assert searched == []
+        seen = tracked._last[frame.shape[:2]]
+        expected = Registration(world.task.workcell, 64).detect(frame)
+        searched.clear()  # (that search was the test's own)
+        assert sorted(seen) == sorted(expected)
+        for ident, quad in expected.items():
+            moved = _apply(registered.homography, seen[ident]) - _apply(registered.homography, quad)
+            assert np.abs(moved).max() <= 0.1
+    covered = frames[-1].copy()
+    first = tracked._last[covered.shape[:2]][world.task.workcell.markers[0].id]
+    (x0, y0), (x1, y1) = first.min(axis=0).astype(int), first.max(axis=0).astype(int) + 1
+    covered[y0:y1, x0:x1] = 128
+    assert world.task.workcell.markers[0].id not in tracked._tracked(
+        cv2.cvtColor(covered, cv2.COLOR_RGB2GRAY), tracked._last[covered.shape[:2]]
+    )
+
+
 def test_the_light_is_mapped_as_computed_pixel_by_pixel():
     rng = np.random.default_rng(0)
     image = rng.integers(0, 256, (32, 48, 3), dtype=np.uint8)
@@ -215,7 +255,8 @@ def test_to_table_frame_passes_views_registers_frames_and_keeps_why_one_failed(b
     registration = Registration(get_task("box_stacking").workcell, 64)
     images, why = to_table_frame(registration, [canonical, frame, frame[:300, :300].copy()])
     assert np.array_equal(images[0], canonical) and why[0] is None  # at the model's size
-    assert np.array_equal(images[1], registration.register(frame).image) and why[1] is None
+    alone = Registration(get_task("box_stacking").workcell, 64)  # (another tracks its last frame)
+    assert np.array_equal(images[1], alone.register(frame).image) and why[1] is None
     assert why[2].startswith("the table markers were not found")  # shown, never planned from
     assert images[2].shape == (64, 64, 3)
 
