@@ -410,6 +410,13 @@ class Backlog:
 R = TypeVar("R")
 
 
+def lower_priority(nice: int) -> None:
+    """The calling thread's niceness (Linux): heavy work yields the CPU to light work."""
+    if nice:
+        with contextlib.suppress(AttributeError, OSError):  # not Linux: as it is
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+
+
 @dataclass(frozen=True)
 class Batched(Generic[R]):
     """An operation that answers every query queued at once with one computation (a forward
@@ -502,9 +509,7 @@ class Server:
         thread.start()
 
     def _loop(self, pending: Pending, work: Batched, backlog: Backlog) -> None:
-        if work.nice:
-            with contextlib.suppress(AttributeError, OSError):  # not Linux: as it is
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), work.nice)
+        lower_priority(work.nice)
         while (batch := self._next_batch(pending, work.max_batch, backlog)) is not None:
             queries = [query for _, query in batch]
             try:

@@ -142,13 +142,13 @@ class Registration:
         refined from where it was, kept where it moved under TRACK_PX (then its start and the
         detector's both lie within the refinement's reach of one corner, which both reach) and
         the marker's cells still read as its own."""
-        found: dict[int, np.ndarray] = {}
-        for ident, quad in last.items():
-            refined = _refine(gray, quad, self._sides[ident])
-            moved = float(np.abs(refined - quad).max())
-            if moved < TRACK_PX and _reads(gray, refined, self._bits[ident], self.bounds):
-                found[ident] = refined
-        return found
+        refined = {ident: _refine(gray, quad, self._sides[ident]) for ident, quad in last.items()}
+        still = [i for i, quad in refined.items() if np.abs(quad - last[i]).max() < TRACK_PX]
+        if not still:
+            return {}
+        quads = np.stack([refined[i] for i in still])
+        reads = _reads(gray, quads, np.stack([self._bits[i] for i in still]), self.bounds)
+        return {ident: refined[ident] for ident, ok in zip(still, reads, strict=True) if ok}
 
     def _near(self, gray: np.ndarray, last: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """Each marker of `last` looked for in a window round where it was: the marker and a
@@ -408,30 +408,33 @@ def _half_cell(corners: np.ndarray, cells: int) -> int:
     return max(2, round(0.5 * _module(corners, cells)))
 
 
-def _reads(gray: np.ndarray, quad: np.ndarray, bits: np.ndarray, bounds: Bounds) -> bool:
-    """Whether the marker at `quad` (frame corners) shows `bits`: every cell's centre pixel on
-    its side of the midpoint between the black and white cells' means, these at least
-    `bounds.min_contrast` apart."""
-    unit, centres = _cell_grid(bits.shape[0])
-    to_frame = cv2.getPerspectiveTransform(unit, quad.astype(np.float32))
-    points = np.rint(cv2.perspectiveTransform(centres, to_frame).reshape(-1, 2)).astype(int)
-    x = np.clip(points[:, 0], 0, gray.shape[1] - 1)
-    y = np.clip(points[:, 1], 0, gray.shape[0] - 1)
-    values = gray[y, x].astype(np.float64)
-    white = bits.reshape(-1)
-    dark, light = values[~white], values[white]
-    middle = (dark.mean() + light.mean()) / 2
-    return bool(
-        light.mean() - dark.mean() >= bounds.min_contrast and dark.max() < middle < light.min()
-    )
+def _reads(gray: np.ndarray, quads: np.ndarray, bits: np.ndarray, bounds: Bounds) -> np.ndarray:
+    """Whether each marker at `quads` (M, 4, 2 frame corners) shows its `bits` (M, n, n): every
+    cell's centre pixel on its side of the midpoint between its black and white cells' means,
+    these at least `bounds.min_contrast` apart."""
+    n = bits.shape[1]
+    unit = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
+    to_frame = np.stack([cv2.getPerspectiveTransform(unit, q.astype(np.float32)) for q in quads])
+    lifted = _cell_grid(n) @ to_frame.transpose(0, 2, 1)  # (M, n * n, 3)
+    points = np.rint(lifted[..., :2] / lifted[..., 2:]).astype(int)
+    x = np.clip(points[..., 0], 0, gray.shape[1] - 1)
+    y = np.clip(points[..., 1], 0, gray.shape[0] - 1)
+    values = gray[y, x].astype(np.float64)  # (M, n * n)
+    white = bits.reshape(len(bits), -1)
+    high = (values * white).sum(axis=1) / white.sum(axis=1)
+    low = (values * ~white).sum(axis=1) / (~white).sum(axis=1)
+    middle = (low + high) / 2
+    darkest_white = np.where(white, values, np.inf).min(axis=1)
+    lightest_black = np.where(white, -np.inf, values).max(axis=1)
+    contrast = high - low >= bounds.min_contrast
+    return contrast & (lightest_black < middle) & (middle < darkest_white)
 
 
 @functools.cache
-def _cell_grid(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """A marker of n x n cells: its corners and its cells' centres, in cells."""
-    unit = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
-    centres = np.stack(np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5), -1)
-    return unit, centres.reshape(-1, 1, 2).astype(np.float32)
+def _cell_grid(n: int) -> np.ndarray:
+    """The centres of a marker's n x n cells, in cells, lifted: (n * n, 3)."""
+    centres = np.stack(np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5), -1).reshape(-1, 2)
+    return np.column_stack([centres, np.ones(len(centres))])
 
 
 def _map_levels(image: np.ndarray, gain: np.ndarray, shift: np.ndarray) -> np.ndarray:

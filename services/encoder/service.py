@@ -10,12 +10,14 @@ pass. Decoded roadmap nodes are cached by the callers (`shared.client.PlanningCl
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from services.encoder.checkpoint import decode_latents, load_vae
 from services.planner.knowing import look
 from services.runtime import ServiceContext
-from shared.bus import Batched, Operation
+from shared.bus import Batched, Operation, lower_priority
 from shared.messages import (
     DecodeReply,
     DecodeRequest,
@@ -71,12 +73,22 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
             )
         return images, [None] * len(images)
 
+    # A query's frames (a plan's start and goal) are decoded and registered side by side, the
+    # first in the frames worker, the others in a helper of its priority: decoders and OpenCV
+    # let go of the GIL.
+    helper = ThreadPoolExecutor(1, "frames-helper", lower_priority, (FRAMES_NICE,))
+
+    def table_view(i: int, data: bytes) -> tuple[np.ndarray, list[str | None]]:
+        return to_table_frame(registration, [decode_frame(f"frames.{i}", data)])
+
     def parse_frames(payload: bytes) -> tuple[np.ndarray, list[str | None]]:
         """Decoded and registered here, in the frames worker: never in front of `encode`."""
         request = unpack(payload, FramesRequest)
         check_task(request.task, task)
-        frames = [decode_frame(f"frames.{i}", data) for i, data in enumerate(request.frames)]
-        return to_table_frame(registration, frames)
+        frames = list(enumerate(request.frames))
+        later = [helper.submit(table_view, i, data) for i, data in frames[1:]]
+        views = [table_view(0, request.frames[0]), *(job.result() for job in later)]
+        return np.concatenate([v for v, _ in views]), [r for _, reasons in views for r in reasons]
 
     def encode(batches: list[tuple[np.ndarray, list[str | None]]]) -> list[EncodeReply]:
         images = np.concatenate([registered for registered, _ in batches])
