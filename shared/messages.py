@@ -190,7 +190,7 @@ class RunRequest(TaskMessage):
 
     start: Any  # state JSON
     goal_state: Any | None = None
-    goal_image: WireArray | None = None
+    goal_image: Frame | None = None  # PNG or JPEG bytes, as the client sent them
     max_steps: int = Field(20, ge=1, le=200)
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
     seed: int = Field(0, ge=0, lt=2**63)

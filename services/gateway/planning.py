@@ -41,12 +41,12 @@ from shared.bus import (
 from shared.client import FrameRefused, Image, PlanningClient
 from shared.dataset import DatasetError
 from shared.images import ImageError, PngCache, decode_image, png_b64
-from shared.messages import RunRequest, WireArray
+from shared.messages import RunRequest
 from shared.settings import Settings
 from shared.tasks import declare_task, get_task, has_simulator
 from shared.tasks.base import TaskError
 from shared.tasks.spec import TaskSpec
-from shared.validation import FieldError, decode_frame, frame_size, parse_state
+from shared.validation import FieldError, frame_size, parse_state
 
 
 class TaskNotServed(LookupError):
@@ -246,9 +246,10 @@ class Gateway:
         goal_state = goal_image = None
         if request.goal.state is not None:
             goal_state = logic.state_to_json(parse_state(logic, "goal.state", request.goal.state))
-        else:  # a frame is registered by the episode, as its own observations are
-            data = b64_bytes("goal.image", request.goal.image)
-            goal_image = WireArray.of(decode_frame("goal.image", data))
+        else:  # a frame is registered by the episode, as its own observations are; it
+            # crosses the bus as the client's bytes, checked here from its header
+            goal_image = b64_bytes("goal.image", request.goal.image)
+            frame_size("goal.image", goal_image)
         return RunRequest(
             task=request.task,
             start=logic.state_to_json(start),

@@ -39,8 +39,8 @@ from shared.tasks.base import World
 from shared.validation import (
     FieldError,
     check_appearance,
-    check_frames,
     check_task,
+    decode_frame,
     parse_state,
 )
 
@@ -106,7 +106,7 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         )
         goal_image = None
         if request.goal_image is not None:
-            goal_image = check_frames("goal_image", request.goal_image)  # registered in the loop
+            goal_image = decode_frame("goal_image", request.goal_image)  # registered in the loop
         if (goal is None) == (goal_image is None):
             raise FieldError("goal_state", "give exactly one of goal_state and goal_image")
         run_world = world("run", check_appearance(request.appearance, trained))

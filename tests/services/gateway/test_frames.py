@@ -22,6 +22,8 @@ from shared.messages import (
     PathsReply,
     RenderReply,
     RenderRequest,
+    RunReply,
+    RunRequest,
     WireArray,
     unpack,
 )
@@ -45,7 +47,7 @@ def played(router_endpoint):
     """An encoder whose `frames` work is slow and queued at most 2 deep (as the real one's is
     bounded), a sim and a planner that answer at once; what each query brought is kept."""
     session = open_session(BusConfig(connect=[router_endpoint], open_timeout_s=5))
-    seen: dict[str, list] = {"encode": [], "frames": []}
+    seen: dict[str, list] = {"encode": [], "frames": [], "run": []}
 
     def info(_: bytes) -> InfoReply:
         return InfoReply(
@@ -68,6 +70,11 @@ def played(router_endpoint):
         states = len(unpack(payload, RenderRequest).states)
         return RenderReply(images=WireArray.of(np.zeros((states, SIZE, SIZE, 3), np.uint8)))
 
+    def run(payload: bytes) -> RunReply:
+        seen["run"].append(unpack(payload, RunRequest).goal_image)
+        none = WireArray.of(np.zeros((0, SIZE, SIZE, 3), np.uint8))
+        return RunReply(success=False, reason="played", final_state=STATE, actions=[], images=none)
+
     def paths(_: bytes) -> PathsReply:
         none = WireArray.of(np.zeros((0, 4), np.float32))
         return PathsReply(paths=[], supports=[], node_ids=[], node_latents=none, model_id="m",
@@ -80,6 +87,7 @@ def played(router_endpoint):
         ("encoder", "encode", encode),
         ("encoder", "frames", Batched(parse, frames, max_batch=1, max_queued=2)),
         ("sim", "render", render),
+        ("sim", "run", run),
         ("planner", "paths", paths),
     ]:
         server = Server(session, service, f"{service}-played")
@@ -109,6 +117,28 @@ def test_a_frame_reaches_the_encoder_as_the_bytes_the_client_sent(gateway_url, p
     assert reply.status_code == 200, reply.text
     assert played["frames"][-1] == [frame]  # not decoded pixels: the JPEG itself
     assert played["encode"][-1] == (1, SIZE, SIZE, 3)  # the goal's render, a view
+
+
+def test_an_execute_goal_frame_reaches_the_sim_as_the_bytes_the_client_sent(gateway_url, played):
+    frame = jpeg(1280, 960, 3)
+    body = {
+        "task": "box_stacking",
+        "start": {"state": STATE},
+        "goal": {"image": base64.b64encode(frame).decode()},
+    }
+    with httpx.Client(base_url=gateway_url, timeout=10) as http:
+        reply = http.post("/execute", json=body)
+        bomb = http.post("/execute", json={**body, "goal": {"image": png_bomb()}})
+    assert reply.status_code == 200, reply.text
+    assert played["run"] == [frame]  # the JPEG itself, to be decoded where it is registered
+    assert bomb.status_code == 422 and "goal.image" in bomb.text  # from its header, not sent
+
+
+def png_bomb() -> str:
+    """A 4096 x 4096 PNG of one colour: some kB that would decode to 50 MB."""
+    buffer = io.BytesIO()
+    Image.new("RGB", (4096, 4096), "gray").save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
 
 
 def test_light_requests_are_answered_while_frames_flood_the_encoder(gateway_url, played):
