@@ -3,8 +3,9 @@ and registration, by frame size and codec, in one process on one core.
 
 Renders `--frames` random states of each task at `camera` (the cell's 400 px frame), resizes
 each to every `--sides` (as a higher-resolution camera would give them), encodes it as JPEG
-(quality 90) and PNG, and times, in the order a robot's camera sends them (one camera: the
-markers are looked for where the last frame had them): decoding (`decode_image` with the
+(quality 90) and PNG, and times, in the order a robot's camera sends them (one fixed camera:
+the markers are tracked from the last frame; a camera that moved between frames:
+`bench_registration.py`'s "new look"): decoding (`decode_image` with the
 gateway's FRAME_DETAIL and MAX_FRAME_PIXELS; a PNG beyond them is refused, not timed) and
 `Registration.register`. Prints p50 / p99 in ms per task, side and codec.
 
@@ -34,11 +35,13 @@ from shared.validation import FRAME_DETAIL, MAX_FRAME_PIXELS
 
 
 def frames_of(task: str, count: int, seed: int) -> list[np.ndarray]:
+    """Random states seen by one camera: one look (pose, lights), the image draws changing."""
     rng = np.random.default_rng(seed)
-    frames = []
     with make_world(task, 64, appearance="camera") as world:
-        for _ in range(count):
-            world.reset(world.task.sample_state(rng), rng)
+        world.reset(world.task.sample_state(rng), rng)  # draws the look
+        frames = [world.frame()]
+        for _ in range(count - 1):
+            world.world.reset(world.task.sample_state(rng), rng)  # the same look
             frames.append(world.frame())
     return frames
 
