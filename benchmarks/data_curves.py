@@ -6,7 +6,10 @@ frames, look pairs by default), `lsr train model`, then on unseen test data Tabl
 counted (`lsr eval vfm`: `refusal_on`), the share of test images known, the APN
 (`lsr eval apn`) and the closed loop in simulation (`lsr eval system`). With `--explore N` the
 same model is grown by N of the arm's own actions (`lsr explore`) and measured again; with
-`--retrain` also a model trained again on the recorded and explored tuples (`lsr data merge`).
+`--train-apn` that model with its APN trained again on the recorded and explored moves (`lsr
+train apn`), with `--retrain` a model trained again on the recorded and explored tuples (`lsr
+data merge`). Exploration looks again `--looks` times after each executed action (recorded as
+no-action pairs; 0 was the first runs' way: their records keep the names without `_l1`).
 Each point's record is kept in OUT/SIZE/seedS/record.json (what it holds is not run again:
 delete it to redo; a model that finished training before an interruption is kept too); data
 seed = --seed + size + 100000 x training seed, so every point has data of its own. Prints a row
@@ -113,22 +116,43 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
         record["trained"] = train(model, data, seed, times, "train_model")
         record["defaults"] = measure(args, model, test, times, "")
         save()
-    grown = run / "explored"
-    if args.explore and "explored" not in record:
+    explored, taught, retrained = kinds(args.looks)
+    tag = explored.removeprefix("explored")
+    grown = run / explored
+    experience = grown / "experience" / "explore"
+    if args.explore and explored not in record:
         shutil.rmtree(grown, ignore_errors=True)
         shutil.copytree(model, grown)
         lsr(["explore", "--model", str(grown), "--actions", str(args.explore), "--seed",
-             str(data_seed)], times, "explore")  # fmt: skip
-        record["explored"] = measure(args, grown, test, times, "_explored")
+             str(data_seed), "--looks", str(args.looks)], times, "explore" + tag)  # fmt: skip
+        record[explored] = measure(args, grown, test, times, "_" + explored)
         save()
-    if args.retrain and "explored" in record and "retrained" not in record:
-        merged, again = run / "merged", run / "retrained"
-        lsr(["data", "merge", "--data", str(data), "--data", str(grown / "experience" /
-             "explore"), "--overwrite", "--out", str(merged)], times, "merge")  # fmt: skip
-        record["retrained_model"] = train(again, merged, seed, times, "train_model_retrained")
-        record["retrained"] = measure(args, again, test, times, "_retrained")
+    if args.train_apn and explored in record and taught not in record:
+        # the grown roadmap, and the APN trained again on the recording and the explored moves
+        apn = run / taught
+        shutil.rmtree(apn, ignore_errors=True)
+        shutil.copytree(grown, apn, ignore=shutil.ignore_patterns("apn"))
+        lsr(["train", "apn", "--vae", str(apn / "vae"), "--data", str(data), str(experience),
+             "--roadmap", str(apn / "roadmap"), "--out", str(apn / "apn"), "--seed",
+             str(seed)], times, "train_" + taught)  # fmt: skip
+        record[taught] = measure(args, apn, test, times, "_" + taught)
+        save()
+    if args.retrain and explored in record and retrained not in record:
+        merged, again = run / ("merged" + tag), run / retrained
+        lsr(["data", "merge", "--data", str(data), "--data", str(experience), "--overwrite",
+             "--out", str(merged)], times, "merge" + tag)  # fmt: skip
+        record[retrained + "_model"] = train(again, merged, seed, times, "train_model_" + retrained)
+        record[retrained] = measure(args, again, test, times, "_" + retrained)
         save()
     return record
+
+
+def kinds(looks: int) -> tuple[str, str, str]:
+    """A point's record keys (and folders) for a model grown by exploring, that with its APN
+    trained again, and one trained again on everything: by the looks taken after each action
+    (0: the names of the first runs)."""
+    tag = f"_l{looks}" if looks else ""
+    return f"explored{tag}", f"explored{tag}_apn", f"retrained{tag}"
 
 
 def train(model: Path, data: Path, seed: int, times: dict[str, Any], name: str) -> dict[str, Any]:
@@ -153,7 +177,7 @@ def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int |
     return sizes, means
 
 
-def plot(task: str, records: list[dict[str, Any]], path: Path) -> None:
+def plot(task: str, records: list[dict[str, Any]], path: Path, looks: int) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -166,7 +190,8 @@ def plot(task: str, records: list[dict[str, Any]], path: Path) -> None:
         ("apn_right", None, "^", "APN right"),
         ("closed_loop", None, "d", "closed loop"),
     )
-    for kind, style in (("defaults", "-"), ("explored", "--"), ("retrained", ":")):
+    explored, taught, retrained = kinds(looks)
+    for kind, style in (("defaults", "-"), (explored, "--"), (taught, "-."), (retrained, ":")):
         points = [r for r in records if kind in r]
         suffix = "" if kind == "defaults" else f" + {kind}"
         for key, index, marker, label in curves if points else ():
@@ -198,6 +223,14 @@ def main() -> None:
     parser.add_argument("--loop-seed", type=int, default=47)
     parser.add_argument("--explore", type=int, default=0, help="explored actions (0: none)")
     parser.add_argument(
+        "--looks", type=int, default=1, help="lsr explore --looks: no-action pairs per action"
+    )
+    parser.add_argument(
+        "--train-apn",
+        action="store_true",
+        help="also the explored model with its APN trained again on the explored moves",
+    )
+    parser.add_argument(
         "--retrain",
         action="store_true",
         help="also train a model again on the recorded and explored tuples (lsr data merge)",
@@ -227,7 +260,7 @@ def main() -> None:
         minutes = r["times"]["train_model"]["wall"] / 60
         print(f"{r['tuples']:6d} {r['seed']:4d} {d['nodes']:5d} {text} {minutes:8.1f}")
     if args.figure:
-        plot(args.task, records, args.figure)
+        plot(args.task, records, args.figure, args.looks)
         print(f"figure: {args.figure}")
 
 
