@@ -85,9 +85,9 @@ def setup(context: ServiceContext) -> dict[str, Operation]:
         """Decoded and registered here, in the frames worker: never in front of `encode`."""
         request = unpack(payload, FramesRequest)
         check_task(request.task, task)
-        frames = list(enumerate(request.frames))
-        later = [helper.submit(table_view, i, data) for i, data in frames[1:]]
-        views = [table_view(0, request.frames[0]), *(job.result() for job in later)]
+        first, *rest = request.frames
+        later = [helper.submit(table_view, i, data) for i, data in enumerate(rest, start=1)]
+        views = [table_view(0, first), *(job.result() for job in later)]
         return np.concatenate([v for v, _ in views]), [r for _, reasons in views for r in reasons]
 
     def encode(batches: list[tuple[np.ndarray, list[str | None]]]) -> list[EncodeReply]:
