@@ -16,6 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from shared.tasks import get_task
+from shared.tasks.base import TaskError
+
 CLEAN = "clean"
 
 
@@ -170,15 +173,15 @@ APPEARANCES: dict[str, Appearance] = {
     ),
 }
 LEVELS: tuple[str, ...] = tuple(APPEARANCES)
-# The look a task's data and renders take when none is asked for: box stacking and cloth
-# folding keep the clean renders their shipped models were trained on; the T-shirt, where the
-# method has to earn its results, looks like a camera's images (the paper's real-camera study).
-TASK_DEFAULTS: dict[str, str] = {"tshirt_folding": "camera"}
 
 
 def task_default(task: str) -> str:
-    """The appearance a task's data is generated at unless told otherwise."""
-    return TASK_DEFAULTS.get(task, CLEAN)
+    """The appearance a task's data is generated at unless told otherwise: what the task
+    declares (`Task.default_look`), else clean."""
+    try:
+        return get_task(task).default_look
+    except TaskError:
+        return CLEAN
 
 
 def get_appearance(name: str, field: str = "appearance") -> Appearance:

@@ -8,10 +8,11 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.bus import DEFAULT_ENDPOINT, BusConfig
+from shared.tasks import DEFAULT_TASK
 
 # The shipped models, found from the source tree (not the working directory): one folder a task.
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
-SHIPPED_MODEL = MODELS_DIR / "box_stacking"
+SHIPPED_MODEL = MODELS_DIR / DEFAULT_TASK
 MODEL_PARTS = ("vae", "roadmap", "apn")  # what the services load
 
 
@@ -38,7 +39,7 @@ class Settings(BaseSettings):
     instance: str | None = Field(None, description="instance id; default hostname-pid-random")
     torch_threads: int = Field(1, ge=1)
     tasks: list[str] = Field(
-        ["box_stacking"], description="gateway: the tasks served (JSON list); others get 404"
+        [DEFAULT_TASK], description="gateway: the tasks served (JSON list); others get 404"
     )
     task_specs: dict[str, dict] = Field(
         {},

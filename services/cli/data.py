@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from shared.appearance import LEVELS, levels_help
-from shared.tasks import task_names
+from shared.tasks import DEFAULT_TASK, get_task, task_names
 
 
 def cmd_data_generate(args: argparse.Namespace) -> int:
@@ -103,7 +103,7 @@ def cmd_data_merge(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     data = sub.add_parser("data", help="datasets").add_subparsers(dest="sub", required=True)
     gen = data.add_parser("generate", help="render a dataset of action and no-action pairs")
-    gen.add_argument("--task", default="box_stacking", choices=task_names())
+    gen.add_argument("--task", default=DEFAULT_TASK, choices=task_names())
     gen.add_argument("--pairs", type=int, default=5000, help="number of tuples")
     gen.add_argument("--seed", type=int, default=0)
     gen.add_argument("--size", type=int, default=64, help="image size in pixels (square)")
@@ -125,8 +125,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--appearance",
         default=None,
         choices=LEVELS,
-        help="how the images look, recorded in the manifest; default: the task's (camera for "
-        f"tshirt_folding, else clean) ({levels_help()})",
+        help="how the images look, recorded in the manifest; default: the task's own ("
+        + ", ".join(f"{t}: {get_task(t).default_look}" for t in task_names())
+        + f") ({levels_help()})",
     )
     gen.add_argument(
         "--look-pairs",

@@ -6,7 +6,7 @@ import argparse
 
 from services.cli.common import env_settings, json_arg, robot_id_arg
 from shared.appearance import LEVELS, levels_help
-from shared.tasks import get_task, task_names
+from shared.tasks import DEFAULT_TASK, get_task, task_names
 
 
 def cmd_robot(args: argparse.Namespace) -> int:
@@ -43,7 +43,7 @@ def cmd_robot(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     robot = sub.add_parser("robot", help="an example robot: plans over zenoh, acts in its sim")
     robot.add_argument("--robot-id", required=True, type=robot_id_arg)
-    robot.add_argument("--task", default="box_stacking", choices=task_names())
+    robot.add_argument("--task", default=DEFAULT_TASK, choices=task_names())
     robot.add_argument("--start-state", required=True, help="state JSON, inline or a file path")
     robot.add_argument("--goal-state", required=True, help="state JSON, inline or a file path")
     robot.add_argument("--max-steps", type=int, default=20)

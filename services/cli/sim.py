@@ -7,7 +7,9 @@ from pathlib import Path
 
 from services.cli.common import json_arg
 from shared.appearance import LEVELS, levels_help, task_default
-from shared.tasks import get_task, task_names
+from shared.tasks import DEFAULT_TASK, get_task, task_names
+
+DEMO_STATES = 36  # `lsr demo` shows every state of a task with at most this many, else 5
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -41,27 +43,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     states = task.all_states()
     images, labels = [], []
     with make_world(args.task, args.size, appearance=task_default(args.task)) as world:
-        if args.task == "box_stacking":
+        if len(states) > DEMO_STATES:  # a sample of them
             picks = [states[i] for i in rng.choice(len(states), size=5, replace=False)]
-            for state in picks:
-                world.reset(state, rng)
-                images.append(world.render())
-                labels.append(" | ".join(",".join(b[0].upper() for b in c) or "-" for c in state))
-            action = task.legal_actions(picks[-1])[0]
-            world.execute(action, rng)
             what, columns = "5 rendered states and the last one after a move", 3
         else:
             picks = list(states)
-            for state in picks:
-                world.reset(state, rng)
-                images.append(world.render())
-                labels.append(" ".join(map(task.short_name, state)) or "flat")
-            action = task.legal_actions(picks[-1])[0]
-            world.execute(world.demonstrated(action, rng), rng)
             what, columns = f"all {len(picks)} states and the last one after a move", 6
+        for state in picks:
+            world.reset(state, rng)
+            images.append(world.render())
+            labels.append(task.state_label(state))
+        action = task.legal_actions(picks[-1])[0]
+        world.execute(world.demonstrated(action, rng), rng)
         images.append(world.render())
         labels.append(describe(action))
-    out = Path(args.out)
+    out = args.out or Path("docs/images") / f"{args.task}_states.png"
     out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(contact_sheet(images, columns=columns, labels=labels)).save(out)
     print(f"wrote {out}: {what}")
@@ -70,7 +66,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     render = sub.add_parser("render", help="render one state to a PNG")
-    render.add_argument("--task", default="box_stacking", choices=task_names())
+    render.add_argument("--task", default=DEFAULT_TASK, choices=task_names())
     render.add_argument("--state", required=True, help="state JSON, inline or a file path")
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--size", type=int, default=64)
@@ -87,7 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "settle",
         help="fold every state of a deformable world once and save its settled-state library",
     )
-    settle.add_argument("--task", default="cloth_folding", choices=task_names())
+    settle.add_argument("--task", required=True, choices=task_names(), help="a world that settles")
     settle.add_argument("--lattice", type=int, help="cloth vertices along a side (tests)")
     settle.add_argument("--out", type=Path, help="library folder (default: in the cache)")
     settle.add_argument("--rebuild", action="store_true", help="fold every state again")
@@ -95,8 +91,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     settle.set_defaults(handler=cmd_settle)
 
     demo = sub.add_parser("demo", help="render a contact sheet of a few states")
-    demo.add_argument("--task", default="box_stacking", choices=task_names())
-    demo.add_argument("--out", type=Path, default=Path("docs/images/box_stacking_states.png"))
+    demo.add_argument("--task", default=DEFAULT_TASK, choices=task_names())
+    demo.add_argument("--out", type=Path, help="default: docs/images/TASK_states.png")
     demo.add_argument("--size", type=int, default=128)
     demo.add_argument("--seed", type=int, default=0)
     demo.set_defaults(handler=cmd_demo)

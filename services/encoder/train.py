@@ -17,17 +17,12 @@ from services.encoder.checkpoint import encode_images, load_vae, save_vae
 from services.encoder.model import VAE, VAEConfig, to_tensor
 from shared.appearance import manifest_appearance
 from shared.dataset import Dataset, load_dataset
+from shared.tasks import get_task
+from shared.tasks.base import Task, TaskError
 from shared.training import minibatches, resolve_device
 
 Metric = Literal["l1", "l2", "inf", "none"]
 METRIC_P = {"l1": 1.0, "l2": 2.0, "inf": math.inf}
-# The paper's d_m per task, about the mean action-pair distance under the baseline VAE; a task
-# the paper did not study gets the box-stacking values.
-PAPER_DM = {
-    "box_stacking": {"l1": 20.0, "l2": 5.0, "inf": 2.5},
-    "cloth_folding": {"l1": 13.5, "l2": 3.5, "inf": 2.0},
-    "tshirt_folding": {"l1": 13.5, "l2": 3.5, "inf": 2.0},  # the paper's own T-shirt study
-}
 
 
 # Optimiser steps of the default schedule. Steps, not epochs: a small dataset needs as many
@@ -88,12 +83,18 @@ class TrainConfig:
             return self.steps
         return self.epochs * math.ceil(pairs / self.batch_size)
 
-    def d_m(self, task: str = "box_stacking") -> float:
+    def d_m(self, task: str | None = None) -> float:
+        """The given d_m, else the task's own (`Task.d_m`: the paper's; a task the paper did
+        not study, or none named, the base values)."""
         if self.metric == "none":
             return 0.0
         if self.dm is not None:
             return self.dm
-        return PAPER_DM.get(task, PAPER_DM["box_stacking"])[self.metric]
+        try:
+            values = Task.d_m if task is None else get_task(task).d_m
+        except TaskError:
+            values = Task.d_m
+        return values[self.metric]
 
 
 def latent_distance(z1: torch.Tensor | np.ndarray, z2: torch.Tensor | np.ndarray, metric: str):

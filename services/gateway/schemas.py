@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from shared.appearance import APPEARANCES, LEVELS
 from shared.bus import ROBOT_ID_PATTERN
 from shared.messages import MAX_AVOID, MAX_PLANS, NodeId
-from shared.tasks import known_tasks
+from shared.tasks import DEFAULT_TASK, known_tasks
 
 
 class Strict(BaseModel):
@@ -17,7 +17,7 @@ class Strict(BaseModel):
 
 
 class TaskRequest(Strict):
-    task: str = Field(examples=["box_stacking"])
+    task: str = Field(examples=[DEFAULT_TASK])
 
     @field_validator("task")
     @classmethod

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from shared import dataset as ds
 from shared.appearance import CLEAN, get_appearance, task_default
 from shared.registration import RegistrationError
-from shared.tasks import get_task
+from shared.tasks import DEFAULT_TASK, get_task
 from shared.tasks.base import Task, World, WorldError
 
 # A walk is started again this often before the run stops: T-shirt moves fail about 1 in 100.
@@ -37,7 +37,7 @@ LOOK_PAIRS = 0.5
 
 @dataclass(frozen=True)
 class GenerateConfig:
-    task: str = "box_stacking"
+    task: str = DEFAULT_TASK
     pairs: int = 5000
     seed: int = 0
     image_size: int = 64

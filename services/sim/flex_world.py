@@ -43,6 +43,13 @@ PERTURB_TURN = np.deg2rad(2.0)
 class FlexWorld(World[Folds, ClothAction]):
     episode_length = 10  # tuples walked from a reset: folded states come from physics
     settles = True
+    # the folding cameras look straight down: the markers take the view's four corners
+    marker_places = (
+        (0, (-40.0, -40.0), 44.0),
+        (1, (296.0, -40.0), 44.0),
+        (2, (296.0, 296.0), 44.0),
+        (3, (-40.0, 296.0), 44.0),
+    )
     task: FoldingTask
     radius: float  # flex collision radius: the flat cloth lies at z = radius
 

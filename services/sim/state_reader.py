@@ -23,7 +23,7 @@ from tqdm import tqdm
 from services.encoder.model import to_tensor
 from shared.checkpoint import read_config, replace_atomically, seal, weights_file
 from shared.dataset import Dataset
-from shared.tasks import get_task
+from shared.tasks import DEFAULT_TASK, get_task
 
 FORMAT = "lsr-state-reader"
 VERSION = 1
@@ -31,7 +31,7 @@ VERSION = 1
 
 @dataclass(frozen=True)
 class ReaderConfig:
-    task: str = "box_stacking"
+    task: str = DEFAULT_TASK
     image_size: int = 64
     cells: int = 9  # elements of the task's state array
     values: int = 5  # classes per element: the values start .. start + values - 1

@@ -170,26 +170,6 @@ def table_marker(
     )
 
 
-# Where each task's markers go, in canonical pixels (id, centre, width there): round the view,
-# clear of its edge by their white margin, inside the frame at `shifted` camera draws. The
-# box camera looks at the table obliquely, so its markers lie low, where the table is near,
-# and the near ones below the view, clear of the frame's edge where perspective widens them;
-# the folding cameras look straight down and take the four corners.
-_CORNERS = [(0, (-40.0, -40.0), 44.0), (1, (296.0, -40.0), 44.0),
-            (2, (296.0, 296.0), 44.0), (3, (-40.0, 296.0), 44.0)]  # fmt: skip
-MIN_MARKERS = {"box_stacking": 4}  # with three, the far edge of the view is 13-17 px off
-PLACES: dict[str, list[tuple[int, tuple[float, float], float]]] = {
-    "box_stacking": [
-        (0, (-40.0, 190.0), 44.0),
-        (1, (296.0, 190.0), 44.0),
-        (2, (208.0, 302.0), 44.0),
-        (3, (48.0, 302.0), 44.0),
-    ],
-    "cloth_folding": _CORNERS,
-    "tshirt_folding": _CORNERS,
-}
-
-
 def layout(world: World) -> Workcell:
     """The task's workcell designed from its world's canonical camera, calibrated on a clean
     frame at the nominal pose (rendered with the markers in place), as a cell is calibrated
@@ -199,7 +179,9 @@ def layout(world: World) -> Workcell:
     markers' cells take."""
     name = world.task.name
     camera = world.camera.camera
-    designed = design(Pinhole.of(world.model, world.data, camera), PLACES[name])
+    if not world.marker_places:
+        raise ValueError(f"{name}: its world declares no marker places")
+    designed = design(Pinhole.of(world.model, world.data, camera), list(world.marker_places))
     drafted = Workcell(markers=designed)
     scene = type(world)(world.task.with_workcell(drafted), image_size=world.image_size)
     try:
@@ -227,7 +209,7 @@ def layout(world: World) -> Workcell:
     black, white = Registration(calibrated, world.image_size).measure_levels(frame)
     return Workcell(
         markers=markers,
-        min_markers=MIN_MARKERS.get(name, 3),
+        min_markers=world.min_markers,
         black=tuple(round(float(v), 2) for v in black),  # type: ignore[arg-type]
         white=tuple(round(float(v), 2) for v in white),  # type: ignore[arg-type]
     )

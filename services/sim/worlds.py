@@ -1,7 +1,7 @@
-"""World registry: the physical simulation of each task, by task name.
+"""The physical simulation of each task, by task name.
 
-Entry points are "module:Class" strings (as Gymnasium's `register`), imported on first use, so
-that naming a task never loads MuJoCo.
+A task declares its world as a "module:Class" entry point (`Task.world_entry`, as Gymnasium's
+`register`), imported on first use, so that naming a task never loads MuJoCo.
 """
 
 from __future__ import annotations
@@ -9,25 +9,19 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from shared.tasks import get_task
+from shared.tasks import get_task, has_simulator
 from shared.tasks.base import World
-
-_WORLDS: dict[str, str] = {
-    "box_stacking": "services.sim.box_stacking.world:BoxStackingWorld",
-    "cloth_folding": "services.sim.cloth_folding.world:ClothFoldingWorld",
-    "tshirt_folding": "services.sim.tshirt_folding.world:TshirtFoldingWorld",
-}
 
 
 def has_world(task_name: str) -> bool:
-    return task_name in _WORLDS
+    return has_simulator(task_name)
 
 
 def world_class(task_name: str) -> type[World]:
-    get_task(task_name)  # raises TaskError naming the known tasks
-    if task_name not in _WORLDS:
+    entry = get_task(task_name).world_entry  # (raises TaskError naming the known tasks)
+    if entry is None:
         raise NotImplementedError(f"task {task_name!r} has no simulated world")
-    module, name = _WORLDS[task_name].split(":")
+    module, name = entry.split(":")
     return getattr(importlib.import_module(module), name)
 
 

@@ -24,6 +24,8 @@ _TASKS: dict[str, Callable[[], Task]] = {
     "tshirt_folding": TshirtFolding,
 }
 _DECLARED: dict[str, DataTask] = {}
+# What commands and settings take when no task is named: the paper's first study.
+DEFAULT_TASK = "box_stacking"
 
 
 def task_names() -> list[str]:
@@ -68,4 +70,4 @@ def declare_task(spec: TaskSpec, workcell: Workcell | None = None) -> Task:
 
 def has_simulator(name: str) -> bool:
     """Whether a World exists for the task (data-only tasks have none)."""
-    return name in _TASKS
+    return name in _TASKS and _builtin(name).world_entry is not None

@@ -10,9 +10,9 @@ from __future__ import annotations
 import copy
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from functools import cached_property
-from typing import Any, Generic, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
@@ -78,9 +78,23 @@ class WorldError(RuntimeError):
 
 
 class Task(ABC, Generic[State, Action]):
-    """States, actions and rules of one task, with array codecs for datasets."""
+    """States, actions and rules of one task, with array codecs for datasets; and the facts
+    generic code asks a task for, never naming one."""
 
     name: str
+    # The paper's d_m per latent metric (the action term's minimum distance), about the mean
+    # action-pair distance under the baseline VAE; a task the paper did not study gets box
+    # stacking's values.
+    d_m: ClassVar[Mapping[str, float]] = {"l1": 20.0, "l2": 5.0, "inf": 2.5}
+    # The look (shared.appearance level) its data and renders take when none is asked for.
+    default_look: ClassVar[str] = "clean"
+    # Its simulated world, "module:Class" imported on first use (as Gymnasium's entry points);
+    # None for a task known only from its data.
+    world_entry: ClassVar[str | None] = None
+
+    def state_label(self, state: State) -> str:
+        """A short text of a state, for contact sheets."""
+        return str(self.state_to_json(state))
 
     @abstractmethod
     def info(self) -> dict[str, Any]:
@@ -212,6 +226,11 @@ class World(ABC, Generic[State, Action]):
     # Worlds whose states cost physics to reach (a folded cloth) reset from a settled-state
     # library (`services.sim.settled`) and take the folders to search as a `library` option.
     settles: bool = False
+    # Where its workcell's markers go (`services.sim.workcell.layout`), in canonical pixels:
+    # (id, centre, width there), round the view, clear of its edge by their white margin,
+    # inside the frame at `shifted` camera draws; and how many registration needs at least.
+    marker_places: ClassVar[tuple[tuple[int, tuple[float, float], float], ...]] = ()
+    min_markers: ClassVar[int] = 3
 
     @abstractmethod
     def reset(self, state: State, rng: np.random.Generator) -> State:

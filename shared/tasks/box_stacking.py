@@ -47,6 +47,11 @@ class BoxStackingConfig:
 class BoxStacking(Task[Stacks, Move]):
     config: BoxStackingConfig = field(default_factory=BoxStackingConfig)
     name: str = "box_stacking"
+    world_entry = "services.sim.box_stacking.world:BoxStackingWorld"
+
+    def state_label(self, state: Stacks) -> str:
+        """Each column's boxes bottom up by initial, '-' for an empty one: 'R,G | B | -'."""
+        return " | ".join(",".join(b[0].upper() for b in c) or "-" for c in state)
 
     # ----- description -----
     def info(self) -> dict[str, Any]:

@@ -58,6 +58,7 @@ class ClothFoldingConfig:
 class ClothFolding(FoldingTask):
     config: ClothFoldingConfig = field(default_factory=ClothFoldingConfig)
     name: str = "cloth_folding"
+    world_entry = "services.sim.cloth_folding.world:ClothFoldingWorld"
     fold_word = "corner"
 
     @property

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import itertools
 from abc import abstractmethod
+from collections.abc import Mapping
 from functools import cached_property
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -53,6 +54,10 @@ class FoldingTask(Task[Folds, ClothAction]):
 
     config: Any  # has `frame` (pixels of the square action frame) and `tolerance` (pixels a
     # click may land from a move's canonical point)
+    d_m: ClassVar[Mapping[str, float]] = {"l1": 13.5, "l2": 3.5, "inf": 2.0}  # the paper's folds'
+
+    def state_label(self, state: Folds) -> str:
+        return " ".join(map(self.short_name, state)) or "flat"
 
     @property
     def frame(self) -> int:

@@ -78,6 +78,10 @@ class TshirtConfig:
 class TshirtFolding(FoldingTask):
     config: TshirtConfig = field(default_factory=TshirtConfig)
     name: str = "tshirt_folding"
+    world_entry = "services.sim.tshirt_folding.world:TshirtFoldingWorld"
+    # where the method has to earn its results, its images look like a camera's (the paper's
+    # real-camera study)
+    default_look = "camera"
 
     @property
     def folds(self) -> tuple[str, ...]:

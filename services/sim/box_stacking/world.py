@@ -28,6 +28,17 @@ MAX_TILT_COS = np.cos(np.deg2rad(20))
 
 
 class BoxStackingWorld(World[Stacks, Move]):
+    # The camera looks at the table obliquely: the markers lie low, where the table is near,
+    # the near ones below the view, clear of the frame's edge where perspective widens them;
+    # all four are needed (with three, the far edge of the view is 13-17 px off).
+    marker_places = (
+        (0, (-40.0, 190.0), 44.0),
+        (1, (296.0, 190.0), 44.0),
+        (2, (208.0, 302.0), 44.0),
+        (3, (48.0, 302.0), 44.0),
+    )
+    min_markers = 4
+
     def __init__(
         self,
         task: BoxStacking | None = None,
