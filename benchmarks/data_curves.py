@@ -9,7 +9,7 @@ same model is grown by N of the arm's own actions (`lsr explore`) and measured a
 `--train-apn` that model with its APN trained again on the recorded and explored moves (`lsr
 train apn`), with `--retrain` a model trained again on the recorded and explored tuples (`lsr
 data merge`). Exploration looks again `--looks` times after each executed action (recorded as
-no-action pairs; 0 was the first runs' way: their records keep the names without `_l1`).
+no-action pairs; 0, `lsr explore`'s default, keeps the names without `_l1`).
 Each point's record is kept in OUT/SIZE/seedS/record.json (what it holds is not run again:
 delete it to redo; a model that finished training before an interruption is kept too); data
 seed = --seed + size + 100000 x training seed, so every point has data of its own. Prints a row
@@ -223,7 +223,7 @@ def main() -> None:
     parser.add_argument("--loop-seed", type=int, default=47)
     parser.add_argument("--explore", type=int, default=0, help="explored actions (0: none)")
     parser.add_argument(
-        "--looks", type=int, default=1, help="lsr explore --looks: no-action pairs per action"
+        "--looks", type=int, default=0, help="lsr explore --looks: no-action pairs per action"
     )
     parser.add_argument(
         "--train-apn",
