@@ -321,8 +321,7 @@ def _cell_centres(marker_id: int, corners: np.ndarray) -> tuple[np.ndarray, np.n
     of each cell, away from the edges blurred by resampling), and whether each is white."""
     cells = marker_cells(marker_id)
     n = cells.shape[0]
-    unit = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float64)
-    to_canonical = cv2.getPerspectiveTransform(unit.astype(np.float32), corners.astype(np.float32))
+    to_canonical = cv2.getPerspectiveTransform(_marker_square(n), corners.astype(np.float32))
     offsets = np.array([0.25, 0.5, 0.75])
     points, white = [], []
     for r in range(n):
@@ -413,7 +412,7 @@ def _reads(gray: np.ndarray, quads: np.ndarray, bits: np.ndarray, bounds: Bounds
     cell's centre pixel on its side of the midpoint between its black and white cells' means,
     these at least `bounds.min_contrast` apart."""
     n = bits.shape[1]
-    unit = np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
+    unit = _marker_square(n)
     to_frame = np.stack([cv2.getPerspectiveTransform(unit, q.astype(np.float32)) for q in quads])
     lifted = _cell_grid(n) @ to_frame.transpose(0, 2, 1)  # (M, n * n, 3)
     points = np.rint(lifted[..., :2] / lifted[..., 2:]).astype(int)
@@ -428,6 +427,11 @@ def _reads(gray: np.ndarray, quads: np.ndarray, bits: np.ndarray, bounds: Bounds
     lightest_black = np.where(white, -np.inf, values).max(axis=1)
     contrast = high - low >= bounds.min_contrast
     return contrast & (lightest_black < middle) & (middle < darkest_white)
+
+
+def _marker_square(n: int) -> np.ndarray:
+    """A marker of n x n cells' corners, in cells, in its corners' order."""
+    return np.array([[0, 0], [n, 0], [n, n], [0, n]], np.float32)
 
 
 @functools.cache

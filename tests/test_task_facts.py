@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from services.encoder.train import TrainConfig
-from services.sim.worlds import has_world, world_class
+from services.sim.worlds import world_class
 from shared.appearance import task_default
-from shared.tasks import DEFAULT_TASK, declare_task, get_task, task_names
+from shared.tasks import DEFAULT_TASK, declare_task, get_task, has_simulator, task_names
 from shared.tasks.base import Task
 from shared.tasks.spec import ArraySpec, TaskSpec
 
@@ -46,13 +46,13 @@ def test_every_task_declares_its_facts_and_a_task_from_data_takes_the_defaults()
     for name in task_names():
         task = get_task(name)
         assert set(task.d_m) == {"l1", "l2", "inf"}
-        assert has_world(name) and world_class(name).marker_places
+        assert has_simulator(name) and world_class(name).marker_places
         assert TrainConfig(metric="l1").d_m(name) == task.d_m["l1"]
         assert task_default(name) == task.default_look
     assert DEFAULT_TASK in task_names()
     action = ArraySpec(dtype="int64", shape=(2,), names=("from", "to"), counts=(4, 4))
     spec = TaskSpec(task="pushing_blocks", action=action, state=None)
     data_task = declare_task(spec)
-    assert data_task.world_entry is None and not has_world("pushing_blocks")
+    assert data_task.world_entry is None and not has_simulator("pushing_blocks")
     assert TrainConfig(metric="l2").d_m("pushing_blocks") == Task.d_m["l2"]
     assert task_default("pushing_blocks") == "clean"

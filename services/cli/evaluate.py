@@ -69,12 +69,13 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
     from services.planner.action_plans import ActionPlanner
     from services.planner.build import load_labels
     from services.sim.closed_loop import PlanJudge, evaluate_system
-    from services.sim.worlds import has_world, make_world
+    from services.sim.worlds import make_world
     from shared.appearance import trained_appearance
+    from shared.tasks import has_simulator
 
     single_thread_torch()
     planner = ActionPlanner.from_model_dir(args.model)
-    if not has_world(planner.task.name):
+    if not has_simulator(planner.task.name):
         raise ValueError(
             f"task {planner.task.name!r} has no simulator (it is defined by its data): "
             "lsr eval system needs one; lsr eval vfm and lsr eval apn need none"

@@ -27,8 +27,9 @@ from services.planner.grow import grow, grow_model, load_members, state_labels
 from services.planner.members import Members
 from services.planner.roadmap import Roadmap, pair_distances
 from services.sim.workcell import Observer
-from services.sim.worlds import has_world, make_world
+from services.sim.worlds import make_world
 from shared.appearance import trained_appearance
+from shared.tasks import has_simulator
 from shared.tasks.base import IllegalActionError, Task, WorldError
 from shared.tasks.spec import ArraySpec
 
@@ -126,7 +127,7 @@ def explore(
     model_dir = Path(model_dir)
     planner = ActionPlanner.from_model_dir(model_dir)
     task: Task = planner.task
-    if not has_world(task.name):
+    if not has_simulator(task.name):
         raise ValueError(f"task {task.name!r} has no simulator: lsr explore needs one")
     vae = planner.planner.vae
     roadmap = base = planner.planner.roadmap

@@ -9,12 +9,8 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from shared.tasks import get_task, has_simulator
+from shared.tasks import get_task
 from shared.tasks.base import World
-
-
-def has_world(task_name: str) -> bool:
-    return has_simulator(task_name)
 
 
 def world_class(task_name: str) -> type[World]:
