@@ -23,7 +23,7 @@ from typing import Any
 
 from ruamel.yaml import YAML
 
-from shared.tasks import task_names
+from shared.settings import shipped_models
 from shared.zenoh_access import SERVICE_ROLES
 
 IMAGE = "lsr:local"  # the Dockerfile's image; push it to a registry the cluster pulls from
@@ -32,7 +32,7 @@ ZENOH_IMAGE = "eclipse/zenoh:1.10.2"  # the router; its version is pyproject.tom
 ROUTER = "zenoh-router"
 ZENOH_PORT = 7447
 GATEWAY_PORT = 8000
-TASKS = tuple(task_names())  # a model folder each on the claim
+TASKS = tuple(p.name for p in shipped_models())  # the tasks with a model to serve, a folder each
 MODELS_CLAIM = "lsr-models"
 EXPERIENCE_CLAIM = "lsr-experience"
 ZENOH_SECRET = "lsr-zenoh"

@@ -99,7 +99,10 @@ def cmd_plan(args: argparse.Namespace) -> int:
                 )
             else:
                 sheet = plan_sheet(
-                    plan, world.action_pixels, arrows=bool(world.task.spec.action.pixels)
+                    plan,
+                    world.action_pixels,
+                    arrows=bool(world.task.spec.action.pixels),
+                    text=world.task.action_label,
                 )
             Image.fromarray(sheet).save(args.out / f"plan_{k}.png")
     summary: dict[str, Any] = {"plans": [p.to_json(planner.task) for p in plans]}

@@ -34,7 +34,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import numpy as np
     from PIL import Image
 
-    from services.planner.sheets import describe
     from services.sim.worlds import make_world
     from shared.images import contact_sheet
 
@@ -56,7 +55,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         action = task.legal_actions(picks[-1])[0]
         world.execute(world.demonstrated(action, rng), rng)
         images.append(world.render())
-        labels.append(describe(action))
+        labels.append(task.action_label(action))
     out = args.out or Path("docs/images") / f"{args.task}_states.png"
     out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(contact_sheet(images, columns=columns, labels=labels)).save(out)

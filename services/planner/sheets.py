@@ -19,11 +19,6 @@ Point = tuple[float, float]
 ActionPixels = Callable[[Any], tuple[Point, Point]]  # action -> (pick, release), image (x, y)
 
 
-def describe(action: Any) -> str:
-    text = f"({action.pick.row},{action.pick.col})->({action.release.row},{action.release.col})"
-    return text + (f" h{action.height}" if hasattr(action, "height") else "")
-
-
 def spec_action_pixels(task: Task, image_size: int) -> ActionPixels | None:
     """Pick and release pixels of a task whose spec declares `pick.row`, `pick.col`,
     `release.row`, `release.col` as pixel fields (a task defined by its data); None otherwise."""
@@ -49,10 +44,11 @@ def plan_sheet(
     action_pixels: ActionPixels | None,
     arrows: bool = False,
     scale: int = 3,
-    text: Callable[[Any], str] = describe,
+    text: Callable[[Any], str] = str,
 ) -> np.ndarray:
     """Images in a row, start to goal; each image before an action shows where it picks and
-    releases (circles, or an arrow from pick to release); the action is written underneath."""
+    releases (circles, or an arrow from pick to release); the action is written underneath
+    (`text`: a task's `action_label`)."""
     h, w = plan.images[0].shape[:2]
     tile_w, tile_h, caption = w * scale, h * scale, 30
     sheet = Image.new("RGB", (len(plan.images) * (tile_w + 4), tile_h + caption), "white")

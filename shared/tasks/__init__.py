@@ -14,6 +14,7 @@ from shared.tasks.base import Task, TaskError
 from shared.tasks.box_stacking import BoxStacking
 from shared.tasks.cloth_folding import ClothFolding
 from shared.tasks.declared import DataTask
+from shared.tasks.rope_box import RopeBox
 from shared.tasks.spec import TaskSpec
 from shared.tasks.tshirt_folding import TshirtFolding
 from shared.workcell import Workcell
@@ -21,6 +22,7 @@ from shared.workcell import Workcell
 _TASKS: dict[str, Callable[[], Task]] = {
     "box_stacking": BoxStacking,
     "cloth_folding": ClothFolding,
+    "rope_box": RopeBox,
     "tshirt_folding": TshirtFolding,
 }
 _DECLARED: dict[str, DataTask] = {}

@@ -96,6 +96,15 @@ class Task(ABC, Generic[State, Action]):
         """A short text of a state, for contact sheets."""
         return str(self.state_to_json(state))
 
+    def action_label(self, action: Action) -> str:
+        """A short text of an action, for contact sheets: its pick and release (and grasp
+        height) where it has them, else its JSON."""
+        pick, release = getattr(action, "pick", None), getattr(action, "release", None)
+        if pick is None or release is None:
+            return str(self.action_to_json(action))
+        text = f"({pick.row},{pick.col})->({release.row},{release.col})"
+        return text + (f" h{action.height}" if hasattr(action, "height") else "")
+
     @abstractmethod
     def info(self) -> dict[str, Any]:
         """JSON description published by `lsr task info` and `GET /tasks/{name}`."""

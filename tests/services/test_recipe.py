@@ -61,7 +61,7 @@ def record(task_name, out, pairs=40, size=32, seed=0, settings=None):
     return out
 
 
-@pytest.mark.parametrize("task", ["box_stacking", "cloth_folding", "tshirt_folding"])
+@pytest.mark.parametrize("task", ["box_stacking", "cloth_folding", "rope_box", "tshirt_folding"])
 def test_one_command_makes_a_model_that_serves_and_plans(task, tmp_path, capsys):
     data = record(task, tmp_path / "data")
     out = tmp_path / "model"
@@ -80,7 +80,7 @@ def test_one_command_makes_a_model_that_serves_and_plans(task, tmp_path, capsys)
     assert recipe["figures"]["nodes"] == figures["nodes"]
     # The APN head follows the action kind: cells classified, pixels regressed.
     head = json.loads((out / "apn" / "config.json").read_text())["train"]["head"]
-    assert head == ("classify" if task == "box_stacking" else "hybrid")
+    assert head == ("hybrid" if get_task(task).spec.action.pixels else "classify")
     # A training image plans to itself through the folder as written.
     png = tmp_path / "start.png"
     png.write_bytes(encode_png(load_dataset(data).image1[0]))

@@ -47,7 +47,7 @@ def test_the_rectangle_layout_puts_a_marker_inside_each_corner():
         rectangle_layout(TABLE, 220.0)
 
 
-@pytest.mark.parametrize("task", ["box_stacking", "cloth_folding", "tshirt_folding"])
+@pytest.mark.parametrize("task", ["box_stacking", "cloth_folding", "rope_box", "tshirt_folding"])
 def test_pixels_and_millimetres_round_trip_and_fit_every_marker_s_corners(task):
     workcell = get_task(task).workcell
     for row, col in [(0, 0), (128, 40), (255, 255), (17.5, 230.25)]:

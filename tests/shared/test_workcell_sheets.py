@@ -26,7 +26,7 @@ from shared.marker_sheets import (
 from shared.tasks import get_task
 from shared.workcell import Marker, Workcell, marker_cells, rectangle_layout
 
-TASKS = ("box_stacking", "cloth_folding", "tshirt_folding")
+TASKS = ("box_stacking", "cloth_folding", "rope_box", "tshirt_folding")
 LAYOUTS = {
     **{task: get_task(task).workcell for task in TASKS},
     "rectangle": rectangle_layout((600.0, 450.0), 80.0),
