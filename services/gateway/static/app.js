@@ -3,7 +3,9 @@
 
 const $ = (id) => document.getElementById(id);
 const SVG = "http://www.w3.org/2000/svg";
-const BOX_COLOURS = { red: "#d92d20", green: "#2e9d4f", blue: "#2563eb", yellow: "#e0a800" };
+const BOX_COLOURS = {
+  red: "#d92d20", green: "#2e9d4f", blue: "#2563eb", yellow: "#e0a800", orange: "#f08a1c",
+};
 const ui = { task: null, info: null, graph: null, ends: {}, plans: [], selected: 0, healthTimer: null,
   roadmapLoading: false, roadmapLoads: 0, roadmapRetry: false };
 
@@ -102,6 +104,13 @@ function stateText(state) {
   if (state.stacks) {
     return state.stacks.map((c) => "[" + c.map((b) => b[0].toUpperCase()).join("") + "]").join(" ");
   }
+  if (state.boxes && "rope" in state) {
+    const boxes = Object.entries(state.boxes).map(([b, c]) => `${b} (${c.row},${c.col})`);
+    const rope = state.rope ?
+      `rope round (${state.rope.pillar.row},${state.rope.pillar.col}), on its ${state.rope.turn}` :
+      "rope straight";
+    return [...boxes, rope].join(" · ");
+  }
   if (state.folds) {
     // a view names the folds a camera above cannot see: unknown, folded or not
     const hidden = (state.hidden || []).map((f) => `${f.replace("_", " ")} unknown`);
@@ -112,18 +121,22 @@ function stateText(state) {
 function actionText(action) {
   if (!action) return "no action";
   const cell = (c) => `(${c.row},${c.col})`;
+  if (action.kind === "rope") return `rope over ${cell(action.pillar)}`;
+  if (action.kind === "box") return `push ${cell(action.pick)} → ${cell(action.release)}`;
   const height = action.height === undefined ? "" : ` h${action.height}`;
   return `${cell(action.pick)} → ${cell(action.release)}${height}`;
 }
 
 // --- start and goal ---------------------------------------------------------------------------
 function emptyState() {
-  if (ui.info.boxes) return { stacks: Array.from({ length: ui.info.columns }, () => []) };
+  if (ui.info.levels) return { stacks: Array.from({ length: ui.info.columns }, () => []) };
   if (ui.info.folds) return { folds: [] };
+  if (ui.info.pillars) return defaultState("start");
   return null;
 }
 function randomState() {
-  if (ui.info.boxes) {
+  if (ui.info.pillars) return randomRopeBox();
+  if (ui.info.levels) {
     const stacks = Array.from({ length: ui.info.columns }, () => []);
     const boxes = [...ui.info.boxes].sort(() => Math.random() - 0.5);
     for (const box of boxes) {
@@ -136,7 +149,14 @@ function randomState() {
   return null;
 }
 function defaultState(name) {
-  if (ui.info.boxes) {
+  if (ui.info.pillars) {
+    // start: side by side, the rope straight; goal: side by side above, bent round a pillar
+    return name === "start" ?
+      { boxes: { green: { row: 1, col: 0 }, orange: { row: 1, col: 1 } }, rope: null } :
+      { boxes: { green: { row: 0, col: 0 }, orange: { row: 0, col: 1 } },
+        rope: { pillar: { row: 0, col: 0 }, turn: "left" } };
+  }
+  if (ui.info.levels) {
     const boxes = ui.info.boxes;  // start: one box a column; goal: a tower on the middle column
     if (name === "start") {
       const stacks = Array.from({ length: ui.info.columns }, () => []);
@@ -246,8 +266,9 @@ function drawEditor(end) {
     }));
     return;
   }
-  if (ui.info.boxes) drawBoxes(end);
+  if (ui.info.levels) drawBoxes(end);
   else if (ui.info.folds) drawFolds(end);
+  else if (ui.info.pillars) drawRopeBox(end);
 }
 
 // Box stacking: pick the top box of a column, release it on top of another; only legal moves.
@@ -329,6 +350,84 @@ function drawFolds(end) {
     box.append(el("label", {}, input, " " + fold.replace("_", " ")));
   }
   end.editor.append(box);
+}
+
+// Rope-box: two boxes on a grid (at most 2 steps apart) and the pillar the rope bends round.
+function randomRopeBox() {
+  const n = ui.info.grid;
+  const cells = [];
+  for (let r = 0; r < n; r++) for (let c = 0; c < n; c++) cells.push({ row: r, col: c });
+  const any = (list) => list[Math.floor(Math.random() * list.length)];
+  const green = any(cells);
+  const steps = (a, b) => Math.abs(a.row - b.row) + Math.abs(a.col - b.col);
+  const orange = any(cells.filter((c) => steps(c, green) >= 1 && steps(c, green) <= 2));
+  const diagonal = green.row !== orange.row && green.col !== orange.col && steps(green, orange) === 2;
+  // diagonal boxes have a pillar between them: the rope passes it on one side
+  const pillar = { row: Math.min(green.row, orange.row), col: Math.min(green.col, orange.col) };
+  const rope = diagonal ? { pillar, turn: any(["left", "right"]) } : null;
+  return { boxes: { green, orange }, rope };
+}
+
+function drawRopeBox(end) {
+  const n = ui.info.grid;
+  const boxes = end.state.boxes;
+  const at = (r, c) => Object.keys(boxes).find((b) => boxes[b].row === r && boxes[b].col === c);
+  const grid = el("div", { class: "rope-grid", role: "group",
+    "aria-label": (end.name === "start" ? "Start" : "Goal") + " grid; rows top down" });
+  for (let r = 0; r < n; r++) {
+    for (let c = 0; c < n; c++) {
+      const box = at(r, c);
+      const label = `Row ${r + 1}, column ${c + 1}: ${box ? box + " box" : "empty"}. ` +
+        (end.held === null ? (box ? "Press to pick it up." : "") :
+          box === end.held ? "Press to put it back." : box ? "Taken." : "Press to put the box here.");
+      const button = el("button", {
+        type: "button", id: `${end.name}-cell-${r}-${c}`, "aria-label": label,
+        class: "rope-cell" + (box && box === end.held ? " holding" : "") +
+          (end.held !== null && !box ? " target" : ""),
+        onclick: () => ropeCellPressed(end, r, c),
+      });
+      if (box) {
+        button.style.background = BOX_COLOURS[box] || "#475467";
+        button.textContent = box[0].toUpperCase();
+      }
+      grid.append(button);
+    }
+  }
+  const choice = el("select", { id: `${end.name}-rope`, "aria-label": "Where the rope runs",
+    onchange: (e) => {
+      end.state.rope = e.target.value ? JSON.parse(e.target.value) : null;
+      refresh(end);
+    } });
+  choice.append(el("option", { value: "", text: "rope straight" }));
+  for (const pillar of ui.info.pillars) {
+    for (const turn of ["left", "right"]) {
+      const rope = { pillar, turn };
+      const same = end.state.rope && JSON.stringify(end.state.rope) === JSON.stringify(rope);
+      choice.append(el("option", { value: JSON.stringify(rope), selected: same ? "selected" : null,
+        text: `round pillar (${pillar.row},${pillar.col}), on the rope's ${turn}` }));
+    }
+  }
+  end.editor.append(grid, el("label", {}, "Rope ", choice), el("p", { class: "muted",
+    text: end.held === null ? "Click a box, then the cell to put it in." :
+      "Now choose its cell (Escape cancels)." }));
+}
+
+function ropeCellPressed(end, r, c) {
+  const boxes = end.state.boxes;
+  const box = Object.keys(boxes).find((b) => boxes[b].row === r && boxes[b].col === c);
+  if (end.held === null) {
+    if (box) end.held = box;
+    drawEditor(end);
+  } else if (box === end.held) {
+    end.held = null;
+    drawEditor(end);
+  } else if (!box) {
+    boxes[end.held] = { row: r, col: c };
+    end.held = null;
+    refresh(end);  // the server names what the rules refuse (too far apart, the rope)
+  }
+  const again = $(`${end.name}-cell-${r}-${c}`);
+  if (again) again.focus();
 }
 
 document.addEventListener("keydown", (e) => {
