@@ -292,8 +292,17 @@ class RopeBoxWorld(World[RopeBoxState, RopeBoxAction]):
         down = np.array([*(centre + LIFT_ACROSS * g.cell * away), g.rope_radius])
         # laid down, drawn a little further: a rope resting on the pillar's top slides off
         drawn = down + np.array([*(LIFT_DRAW * g.cell * away), 0.0])
-        way = [start, near, [*near[:2], high], [*down[:2], high], down, drawn]
-        self.data.mocap_pos[self._grip] = start
+        self._carry(vertex, [start, near, [*near[:2], high], [*down[:2], high], down, drawn])
+        self._settle()
+        points = self.vertices()
+        top = int(np.argmax(points[1:-1, 2])) + 1  # (the ends are tied under the boxes)
+        if points[top, 2] > g.pillar_height:  # caught on a pillar's top: drawn off it, once
+            off = np.array([*(points[top, :2] + 2 * LIFT_DRAW * g.cell * away), g.rope_radius])
+            self._carry(top, [points[top], [*off[:2], points[top, 2]], off])
+
+    def _carry(self, vertex: int, way: list) -> None:
+        """The hand holds a rope vertex along the waypoints, then lets go."""
+        self.data.mocap_pos[self._grip] = way[0]
         self.model.eq_obj2id[self._hand] = self._vertex_body[vertex]
         self.model.eq_data[self._hand, :6] = 0.0
         self.data.eq_active[self._hand] = 1
