@@ -27,6 +27,7 @@ from services.encoder.train import DEFAULT_STEPS, Metric, TrainConfig, train_vae
 from services.planner.build import build_from_dataset
 from services.planner.roadmap import EpsilonRule, RoadmapConfig
 from shared.dataset import Dataset, DatasetError, load_dataset, publish
+from shared.tasks import get_task
 
 # The fewest tuples of each kind a model can be trained from: the APN keeps a fifth of the
 # action pairs for validation, and epsilon is measured on the no-action pairs.
@@ -99,22 +100,32 @@ def choose(
 ) -> tuple[TrainConfig, RoadmapConfig, APNTrainConfig, list[str]]:
     """The three steps' settings for this dataset, and a line saying where each came from."""
     settings = data.manifest.get("settings") or {}
+    own = get_task(data.task).roadmap_settings
     why: list[str] = []
 
-    def pick(name: str, given: Any, declared: Any, default: Any, reason: str) -> Any:
+    def declared(key: str) -> tuple[Any, str]:
+        """A setting the dataset's task.json gives, else one measured for its task."""
+        if settings.get(key) is not None:
+            return settings[key], "the dataset's task.json settings"
+        if own.get(key) is not None:
+            return own[key], f"measured for {data.task} (docs/tasks)"
+        return None, ""
+
+    def pick(name: str, given: Any, key: str, default: Any, reason: str) -> Any:
         if given is not None:
             why.append(f"{name} {given}: given")
             return given
-        if declared is not None:
-            why.append(f"{name} {declared}: the dataset's task.json settings")
-            return declared
+        value, source = declared(key)
+        if value is not None:
+            why.append(f"{name} {value}: {source}")
+            return value
         why.append(f"{name} {default}: {reason}")
         return default
 
     steps = pick(
         "vae steps",
         recipe.vae_steps,
-        None,
+        "vae_steps",
         vae_steps(len(data)),
         f"{len(data)} tuples: max({DEFAULT_STEPS}, {MIN_EPOCHS} epochs)",
     )
@@ -125,12 +136,12 @@ def choose(
     source = "the dataset's task.json settings" if dm is not None else "the paper's for the task"
     why.append(f"d_m {vae.d_m(data.task)}: {source}")
     metric = "l1" if recipe.metric == "none" else recipe.metric
-    eps_rule = pick("epsilon rule", recipe.eps_rule, None, "stable", "the stable cut")
-    w_eps = pick("w_eps", recipe.w_eps, settings.get("w_eps"), 1.0, "Algorithm 1's fallback")
+    eps_rule = pick("epsilon rule", recipe.eps_rule, "eps_rule", "stable", "the stable cut")
+    w_eps = pick("w_eps", recipe.w_eps, "w_eps", 1.0, "Algorithm 1's fallback")
     min_samples = pick(
         "min_samples",
         recipe.min_samples,
-        settings.get("min_samples"),
+        "min_samples",
         None,
         "a tenth of the typical region",
     )

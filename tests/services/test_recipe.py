@@ -98,6 +98,17 @@ def test_settings_come_from_the_dataset_and_say_why(tmp_path):
     assert roadmap.min_samples == 2 and "min_samples 2: given" in why
 
 
+def test_a_task_measured_settings_come_after_the_dataset_s(tmp_path):
+    _, roadmap, _, why = choose(load_dataset(record("rope_box", tmp_path / "a")), Recipe())
+    assert (roadmap.eps_rule, roadmap.w_eps) == ("paper", 4.0)
+    assert "w_eps 4.0: measured for rope_box (docs/tasks)" in why
+    declared = record("rope_box", tmp_path / "b", settings={"w_eps": 2.0})
+    _, roadmap, _, why = choose(load_dataset(declared), Recipe(eps_rule="stable"))
+    assert (roadmap.eps_rule, roadmap.w_eps) == ("stable", 2.0)
+    _, roadmap, _, _ = choose(load_dataset(record("box_stacking", tmp_path / "c")), Recipe())
+    assert (roadmap.eps_rule, roadmap.w_eps) == ("stable", 1.0)
+
+
 def test_steps_grow_with_large_data_only():
     assert vae_steps(40) == vae_steps(1000) == 2400
     assert vae_steps(5000) == 2400  # 30 epochs of 5000 at 64 a batch: 2370
