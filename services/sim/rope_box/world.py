@@ -27,6 +27,7 @@ LIFT_DRAW = 0.1  # cells the laid rope is drawn on along the floor
 LIFT_NEAR = 0.25  # cells before the pillar where the rope is lifted
 CLEARANCE = 0.0015  # m: a laid rope keeps this far from the pillars
 PATH_TRIES = 100
+BEND = 0.3  # cells from a pillar where a rope bent round it is laid
 
 
 def swept_angles(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -138,20 +139,16 @@ class RopeBoxWorld(World[RopeBoxState, RopeBoxAction]):
         length = self.task.config.rope_cells * g.cell
         base = [a]
         if state.rope:
-            pillar, right = divmod(state.rope - 1, 2)
-            along = (b - a) / np.linalg.norm(b - a)
-            left = np.array([-along[1], along[0]])
-            # the pillar on the rope's left: the rope passes on its right side, and vice versa
-            bend = self._pillars[pillar] + (1 if right else -1) * 0.3 * g.cell * left
+            pillar = (state.rope - 1) // 2
+            outward = self._side(state, pillar)
+            bend = self._pillars[pillar] + BEND * g.cell * outward
             base.append(bend)
         base.append(b)
         clear = g.pillar_radius + g.rope_radius + CLEARANCE
         inside = self.task.config.size / 2 * g.cell - g.rope_radius  # on the grid
         for attempt in range(PATH_TRIES):
             if state.rope:  # the bend a little nearer or further round the pillar
-                base[1] = bend + rng.uniform(-0.08, 0.12) * g.cell * (
-                    bend - self._pillars[pillar]
-                ) / (0.3 * g.cell)
+                base[1] = bend + rng.uniform(-0.08, 0.12) * g.cell * outward
             waves = int(rng.integers(1, 5)) + attempt // 20
             path = self._with_slack(
                 _resample(np.array(base), 200), length, waves, rng.choice([-1.0, 1.0])
