@@ -49,6 +49,7 @@ FAMILY: dict[str, list[tuple[str, list[int], list[float]]]] = {
         ("Ensemble LSR real shirt: runs folded", [562], [88.0]),
     ],
     "cloth_folding": [],
+    "rope_box": [("LSR-v2 rope-box: all plans right", [2500], [89.7])],
 }
 
 
