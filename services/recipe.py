@@ -28,6 +28,7 @@ from services.planner.build import build_from_dataset
 from services.planner.roadmap import EpsilonRule, RoadmapConfig
 from shared.dataset import Dataset, DatasetError, load_dataset, publish
 from shared.tasks import get_task
+from shared.tasks.base import Task, TaskError
 
 # The fewest tuples of each kind a model can be trained from: the APN keeps a fifth of the
 # action pairs for validation, and epsilon is measured on the no-action pairs.
@@ -100,7 +101,10 @@ def choose(
 ) -> tuple[TrainConfig, RoadmapConfig, APNTrainConfig, list[str]]:
     """The three steps' settings for this dataset, and a line saying where each came from."""
     settings = data.manifest.get("settings") or {}
-    own = get_task(data.task).roadmap_settings
+    try:
+        own = get_task(data.task).roadmap_settings
+    except TaskError:  # a task known only from its data: nothing measured for it
+        own = Task.roadmap_settings
     why: list[str] = []
 
     def declared(key: str) -> tuple[Any, str]:
