@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from services.sim.rendering import OffscreenCamera, mujoco
+from services.sim.rendering import mujoco
 from services.sim.settled import SettledLibrary
-from services.sim.workcell import FrameCamera, with_markers
+from services.sim.workcell import CameraWorld, with_markers
 from shared.deadlines import check_deadline
 from shared.tasks.base import InvalidActionError, World, WorldError
 from shared.tasks.folding import ClothAction, FoldingTask, Folds, Pixel
@@ -40,7 +40,7 @@ PERTURB_SHIFT = 0.005  # m, uniform: the no-action perturbation (paper: "slightl
 PERTURB_TURN = np.deg2rad(2.0)
 
 
-class FlexWorld(World[Folds, ClothAction]):
+class FlexWorld(CameraWorld, World[Folds, ClothAction]):
     episode_length = 10  # tuples walked from a reset: folded states come from physics
     settles = True
     # the folding cameras look straight down: the markers take the view's four corners
@@ -70,8 +70,7 @@ class FlexWorld(World[Folds, ClothAction]):
         self.image_size = image_size
         self.model = mujoco.MjModel.from_xml_string(with_markers(xml, task.workcell), assets)
         self.data = mujoco.MjData(self.model)
-        self.camera = OffscreenCamera(self.model, "top", image_size)
-        self.frame_camera = FrameCamera(self.model, "top") if task.workcell else None
+        self._open_cameras("top", image_size, task.workcell is not None)
         first = int(self.model.flex_vertadr[0])
         count = int(self.model.flex_vertnum[0])
         self._vertex_body = self.model.flex_vertbodyid[first : first + count].copy()
@@ -274,14 +273,6 @@ class FlexWorld(World[Folds, ClothAction]):
         return float(np.abs(self.data.qvel).max(initial=0.0))
 
     # ----- looking -----
-    def render(self) -> np.ndarray:
-        return self.camera.render(self.data)
-
-    def frame(self) -> np.ndarray:
-        if self.frame_camera is None:
-            return self.render()
-        return self.frame_camera.render(self.data)
-
     def read_state(self) -> Folds:
         if not np.isfinite(self.data.flexvert_xpos).all():
             raise WorldError("the cloth's vertices are not finite: the simulation diverged")
@@ -326,11 +317,6 @@ class FlexWorld(World[Folds, ClothAction]):
         """Min-jerk progress (0..1] for each physics step of a move of `length` metres."""
         steps = max(2, int(np.ceil(length / speed / self.model.opt.timestep)))
         return np.array([min_jerk(k / steps) for k in range(1, steps + 1)])
-
-    def close(self) -> None:
-        self.camera.close()
-        if self.frame_camera is not None:
-            self.frame_camera.close()
 
 
 def min_jerk(t: float) -> float:

@@ -89,6 +89,34 @@ class FrameCamera(OffscreenCamera):
             self.model.cam_fovy[self._id] = canonical
 
 
+class CameraWorld:
+    """What every MuJoCo world does with its camera: the canonical view the models see and, in
+    a cell with markers, the cell camera's wider frame of the same pose. A world calls
+    `_open_cameras` once its model is loaded."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    camera: OffscreenCamera
+    frame_camera: FrameCamera | None
+
+    def _open_cameras(self, name: str, image_size: int, workcell: bool) -> None:
+        self.camera = OffscreenCamera(self.model, name, image_size)
+        self.frame_camera = FrameCamera(self.model, name) if workcell else None
+
+    def render(self) -> np.ndarray:
+        return self.camera.render(self.data)
+
+    def frame(self) -> np.ndarray:
+        if self.frame_camera is None:
+            return self.render()
+        return self.frame_camera.render(self.data)
+
+    def close(self) -> None:
+        self.camera.close()
+        if self.frame_camera is not None:
+            self.frame_camera.close()
+
+
 @dataclass(frozen=True)
 class Pinhole:
     """A MuJoCo camera as a pinhole of the canonical frame: project and back-project."""

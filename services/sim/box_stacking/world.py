@@ -14,8 +14,8 @@ from services.sim.box_stacking.scene import (
     build_mjcf,
     grip_weld,
 )
-from services.sim.rendering import OffscreenCamera, mujoco
-from services.sim.workcell import FrameCamera, with_markers
+from services.sim.rendering import mujoco
+from services.sim.workcell import CameraWorld, with_markers
 from shared.tasks.base import World, WorldError
 from shared.tasks.box_stacking import BoxStacking, Move, Stacks
 
@@ -27,7 +27,7 @@ RELEASE_GAP = 0.002  # m above the resting height when the weld lets go
 MAX_TILT_COS = np.cos(np.deg2rad(20))
 
 
-class BoxStackingWorld(World[Stacks, Move]):
+class BoxStackingWorld(CameraWorld, World[Stacks, Move]):
     # The camera looks at the table obliquely: the markers lie low, where the table is near,
     # the near ones below the view, clear of the frame's edge where perspective widens them;
     # all four are needed (with three, the far edge of the view is 13-17 px off).
@@ -54,8 +54,7 @@ class BoxStackingWorld(World[Stacks, Move]):
         mjcf = with_markers(mjcf, self.task.workcell)
         self.model = mujoco.MjModel.from_xml_string(mjcf)
         self.data = mujoco.MjData(self.model)
-        self.camera = OffscreenCamera(self.model, "front", image_size)
-        self.frame_camera = FrameCamera(self.model, "front") if self.task.workcell else None
+        self._open_cameras("front", image_size, self.task.workcell is not None)
         self._column_x = np.array(
             [self.geometry.column_x(c, cfg.columns) for c in range(cfg.columns)]
         )
@@ -98,14 +97,6 @@ class BoxStackingWorld(World[Stacks, Move]):
                 break
 
     # ----- looking -----
-    def render(self) -> np.ndarray:
-        return self.camera.render(self.data)
-
-    def frame(self) -> np.ndarray:
-        if self.frame_camera is None:
-            return self.render()
-        return self.frame_camera.render(self.data)
-
     def read_state(self) -> Stacks:
         g, cfg = self.geometry, self.task.config
         cells: list[list[tuple[int, str]]] = [[] for _ in range(cfg.columns)]
@@ -179,8 +170,3 @@ class BoxStackingWorld(World[Stacks, Move]):
         x, y, z = rotation.T @ (point - self.data.cam_xpos[cam.id])
         focal = self.image_size / 2 / np.tan(np.deg2rad(self.model.cam_fovy[cam.id]) / 2)
         return self.image_size / 2 + focal * x / -z, self.image_size / 2 - focal * y / -z
-
-    def close(self) -> None:
-        self.camera.close()
-        if self.frame_camera is not None:
-            self.frame_camera.close()

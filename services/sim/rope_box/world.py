@@ -9,9 +9,9 @@ import math
 
 import numpy as np
 
-from services.sim.rendering import OffscreenCamera, mujoco
+from services.sim.rendering import mujoco
 from services.sim.rope_box.scene import RopeBoxGeometry, box_body, build_mjcf
-from services.sim.workcell import FrameCamera, with_markers
+from services.sim.workcell import CameraWorld, with_markers
 from shared.tasks.base import InvalidStateError, World, WorldError
 from shared.tasks.rope_box import BOXES, Cell, RopeBox, RopeBoxAction, RopeBoxState
 
@@ -55,7 +55,7 @@ def _segment_distance(points: np.ndarray, centre: np.ndarray) -> float:
     return float(np.linalg.norm(a + t[:, None] * d - centre, axis=1).min())
 
 
-class RopeBoxWorld(World[RopeBoxState, RopeBoxAction]):
+class RopeBoxWorld(CameraWorld, World[RopeBoxState, RopeBoxAction]):
     # the camera looks straight down: the markers take the view's four corners
     marker_places = (
         (0, (-40.0, -40.0), 44.0),
@@ -76,8 +76,7 @@ class RopeBoxWorld(World[RopeBoxState, RopeBoxAction]):
         xml = build_mjcf(self.task.config, g, image_size)
         self.model = mujoco.MjModel.from_xml_string(with_markers(xml, self.task.workcell))
         self.data = mujoco.MjData(self.model)
-        self.camera = OffscreenCamera(self.model, "top", image_size)
-        self.frame_camera = FrameCamera(self.model, "top") if self.task.workcell else None
+        self._open_cameras("top", image_size, self.task.workcell is not None)
         first = int(self.model.flex_vertadr[0])
         count = int(self.model.flex_vertnum[0])
         self._vertex_body = self.model.flex_vertbodyid[first : first + count].copy()
@@ -191,14 +190,6 @@ class RopeBoxWorld(World[RopeBoxState, RopeBoxAction]):
                 break
 
     # ----- looking -----
-    def render(self) -> np.ndarray:
-        return self.camera.render(self.data)
-
-    def frame(self) -> np.ndarray:
-        if self.frame_camera is None:
-            return self.render()
-        return self.frame_camera.render(self.data)
-
     def _rope_code(self, green: Cell, orange: Cell, points: np.ndarray) -> int:
         """The rope code of vertices (V, 2) between boxes in these cells: the swept angles of
         the path from the green cell's centre along the rope to the orange one's."""
@@ -337,8 +328,3 @@ class RopeBoxWorld(World[RopeBoxState, RopeBoxAction]):
             self.image_size / 2 + focal * xy[0] / height,
             self.image_size / 2 - focal * xy[1] / height,
         )
-
-    def close(self) -> None:
-        self.camera.close()
-        if self.frame_camera is not None:
-            self.frame_camera.close()
