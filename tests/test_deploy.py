@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 from ruamel.yaml import YAML
 
+from shared.settings import shipped_models
 from shared.zenoh_access import write_deployment
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,6 +25,7 @@ TASK_SERVICES = {
         ("", "box_stacking"),
         ("cloth-", "cloth_folding"),
         ("tshirt-", "tshirt_folding"),
+        ("rope-", "rope_box"),
     )
     for name in MODEL_SERVICES
 }
@@ -120,10 +122,11 @@ def test_model_service_mounts_its_tasks_model_read_only(name: str) -> None:
     assert service["healthcheck"]["test"] == ["CMD", "lsr", "ping", runs, "--this-host"]
 
 
-def test_gateway_serves_every_task_that_has_services() -> None:
+def test_gateway_serves_every_shipped_model_and_each_has_services() -> None:
     services = compose_services()
     served = json.loads(services["gateway"]["environment"]["LSR_TASKS"])
     assert sorted(served) == sorted({task for _, task in TASK_SERVICES.values()})
+    assert sorted(served) == sorted(p.name for p in shipped_models())
 
 
 def test_gateway_records_experience_on_a_volume_of_its_own() -> None:

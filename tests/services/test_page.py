@@ -31,6 +31,8 @@ MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
 CLOTH_MODEL = MODEL.parent / "cloth_folding"
 TASK = get_task("box_stacking")
 CLOTH = get_task("cloth_folding")
+ROPE_MODEL = MODEL.parent / "rope_box"
+ROPE = get_task("rope_box")
 TIMEOUT_MS = 30_000
 # assertions wait as long as actions do: on a loaded machine a reply may take seconds
 expect.set_options(timeout=TIMEOUT_MS)
@@ -49,7 +51,7 @@ def stack(tmp_path_factory) -> Iterator[Stack]:
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
-        models=(MODEL, CLOTH_MODEL),
+        models=(MODEL, CLOTH_MODEL, ROPE_MODEL),
         log_dir=tmp_path_factory.mktemp("page-stack-logs"),
     )
     with Stack(config) as running:
@@ -124,7 +126,11 @@ def assert_legal(task, start: dict, goal: dict, plans: list[list[dict]]) -> None
 
 def test_edit_plan_and_execute_with_the_keyboard_and_the_mouse(page):
     page, _ = page
-    assert page.locator("#task option").all_inner_texts() == ["box stacking", "cloth folding"]
+    assert page.locator("#task option").all_inner_texts() == [
+        "box stacking",
+        "cloth folding",
+        "rope box",
+    ]
     # Start (one box a column, yellow on red): yellow onto blue, by keyboard.
     assert shown_state(page, "start") == "[RY] [G] [B]"
     page.focus("#start-col-0")
@@ -264,6 +270,26 @@ def test_cloth_folds_from_checkboxes(page):
     start, goal = {"folds": ["bottom_right"]}, {"folds": ["top_left"]}
     assert_legal(CLOTH, start, goal, plan_actions(page))
     assert page.locator(".plan svg.marks circle.release").count() >= 2
+
+
+def test_rope_box_from_the_grid_and_the_rope_menu(page):
+    page, console = page
+    page.select_option("#task", "rope_box")
+    page.click("#start-cell-1-0")  # the green box, picked up
+    page.click("#start-cell-1-2")  # and put to the orange box's right
+    expect(page.locator("#start-source")).to_have_text("green (1,2) · orange (1,1) · rope straight")
+    # The default goal's rope bends round pillar (0, 0) on its left; its right is no state.
+    console.expect(422)
+    wrong = {"pillar": {"row": 0, "col": 0}, "turn": "right"}
+    page.select_option("#goal-rope", json.dumps(wrong, separators=(",", ":")))
+    expect(page.locator("#goal-error")).to_contain_text("only bend round pillar (0, 0)")
+    page.select_option("#goal-rope", "")  # straight
+    expect(page.locator("#goal-source")).to_contain_text("rope straight")
+    page.click("#plan-btn")
+    expect(page.locator(".plan").first).to_be_visible()
+    start = {"boxes": {"green": {"row": 1, "col": 2}, "orange": {"row": 1, "col": 1}}, "rope": None}
+    goal = {"boxes": {"green": {"row": 0, "col": 0}, "orange": {"row": 0, "col": 1}}, "rope": None}
+    assert_legal(ROPE, start, goal, plan_actions(page))
 
 
 def test_a_stopped_service_shows_as_down_within_seconds(page, stack):

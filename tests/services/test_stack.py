@@ -1,7 +1,7 @@
 """End to end: the real router, services and gateway as processes on free loopback ports.
 
-The stack serves the shipped models (box stacking, cloth and T-shirt folding), four services
-each.
+The stack serves the shipped models (box stacking, cloth and T-shirt folding, rope-box), four
+services each.
 Tests run in file order; the ones that stop or kill processes come last.
 """
 
@@ -51,7 +51,19 @@ SHIRT = get_task("tshirt_folding")
 # The goal's left sleeve lies under its folded side and the folded half: no camera above sees
 # whether it is folded, so plans and the closed loop are judged by the goal's view.
 SHIRT_HIDDEN = {"folds": ["left_sleeve", "left_side", "bottom_half"]}
-SERVED = ("box_stacking", "cloth_folding", "tshirt_folding")
+ROPE_MODEL = MODEL.parent / "rope_box"
+ROPE = get_task("rope_box")
+ROPE_START = {
+    "boxes": {"green": {"row": 0, "col": 0}, "orange": {"row": 0, "col": 1}},
+    "rope": None,
+}
+# Two moves of both kinds: the rope lifted over the top-left pillar, then green pushed down.
+ROPE_GOAL = {
+    "boxes": {"green": {"row": 1, "col": 0}, "orange": {"row": 0, "col": 1}},
+    "rope": {"pillar": {"row": 0, "col": 0}, "turn": "left"},
+}
+ROPE_GOOD = {"task": "rope_box", "start": {"state": ROPE_START}, "goal": {"state": ROPE_GOAL}}
+SERVED = ("box_stacking", "cloth_folding", "rope_box", "tshirt_folding")
 START = {"stacks": [["red", "green"], ["blue"], ["yellow"]]}
 GOAL = {"stacks": [[], ["yellow", "green", "red"], ["blue"]]}
 GOOD = {"task": "box_stacking", "start": {"state": START}, "goal": {"state": GOAL}}
@@ -75,7 +87,7 @@ def stack(tmp_path_factory, access):
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
-        models=(MODEL, CLOTH_MODEL, SHIRT_MODEL),
+        models=(MODEL, CLOTH_MODEL, SHIRT_MODEL, ROPE_MODEL),
         log_dir=tmp_path_factory.mktemp("stack-logs"),
         zenoh_access=access,
         env={"LSR_EXPERIENCE_DIR": str(tmp_path_factory.mktemp("experience"))},
@@ -131,7 +143,7 @@ def assert_plans_lead_from(
             assert first.format == "PNG" and first.size == (64, 64)
 
 
-def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
+def test_health_lists_every_service_and_the_tokens_are_alive(stack, http, bus):
     reply = http.get("/health")
     assert reply.status_code == 200
     services = reply.json()["services"]
@@ -139,7 +151,7 @@ def test_health_lists_every_service_and_the_tokens_are_alive(http, bus):
     for service in services.values():  # one instance per task
         assert service["status"] == "ok"
         assert sorted(i["task"] for i in service["instances"]) == list(SERVED)
-    assert http.get("/tasks").json() == {"tasks": list(SERVED)}
+    assert http.get("/tasks").json() == {"tasks": [m.name for m in stack.config.models]}
     tokens = {str(r.ok.key_expr).split("/")[2] for r in bus.liveliness().get("lsr/alive/**")}
     assert tokens == {"encoder", "planner", "apn", "sim", "gateway"}
     assert http.get("/tasks/box_stacking").json()["num_states"] == 288
@@ -261,6 +273,31 @@ def test_tshirt_execute_reaches_a_goal_whose_sleeve_is_hidden(http):
     assert result["final_view"] == SHIRT.view_to_json(hidden)  # the sleeve: either way
     assert SHIRT.view(SHIRT.parse_state(result["final_state"])) == SHIRT.view(hidden)
     assert 2 <= len(result["steps"]) <= 4  # fewest: the left side, then the half
+
+
+def test_rope_box_plans_are_legal_from_states_and_from_images(http):
+    reply = http.post("/plan", json={**ROPE_GOOD, "max_plans": 4})
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(ROPE_START, ROPE_GOAL, reply.json(), task=ROPE)
+    start, goal = (
+        http.post("/render", json={"task": "rope_box", "state": s, "seed": 2}).json()["image"]
+        for s in (ROPE_START, ROPE_GOAL)
+    )
+    from_images = {"task": "rope_box", "start": {"image": start}, "goal": {"image": goal}}
+    reply = http.post("/plan", json=from_images)
+    assert reply.status_code == 200, reply.text
+    assert_plans_lead_from(ROPE_START, ROPE_GOAL, reply.json(), task=ROPE)
+    kinds = [a["kind"] for a in reply.json()["plans"][0]["actions"]]
+    assert sorted(kinds) == ["box", "rope"]
+
+
+def test_rope_box_execute_reaches_its_goal(http):
+    reply = http.post("/execute", json={**ROPE_GOOD, "seed": 6})
+    assert reply.status_code == 200, reply.text
+    body = reply.json()
+    assert body["success"] and body["reason"] == "goal", body["reason"]
+    assert ROPE.parse_state(body["final_state"]) == ROPE.parse_state(ROPE_GOAL)
+    assert len(body["steps"]) == 2
 
 
 @pytest.mark.parametrize(
@@ -516,6 +553,21 @@ def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
     for u in recorded.u[recorded.a == 1]:
         state = TASK.apply(state, TASK.array_to_action(u))  # the actions as executed, in order
     assert state == TASK.parse_state(GOAL)
+
+
+def test_robot_client_moves_the_rope_box_to_its_goal(stack, access):
+    command = ["robot", "--robot-id", "r2", "--task", "rope_box"]
+    ends = ["--start-state", json.dumps(ROPE_START), "--goal-state", json.dumps(ROPE_GOAL)]
+    ends += ["--connect", stack.config.endpoint]
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", *command, *ends],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=as_role(access, "robot-r2"),
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "[r2] step 2:" in result.stdout and "reached the goal" in result.stdout
 
 
 def test_an_impostor_planner_and_strangers_are_refused_while_the_stack_serves(stack, http, access):
