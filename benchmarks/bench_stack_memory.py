@@ -18,17 +18,11 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 
 from services.stack import Stack, StackConfig, free_port, model_task
 from shared.settings import shipped_models
-
-STATES = {
-    "box_stacking": (
-        {"stacks": [["red", "green"], ["blue"], ["yellow"]]},
-        {"stacks": [[], ["yellow", "green", "red"], ["blue"]]},
-    ),
-    "cloth_folding": ({"folds": []}, {"folds": ["top_left"]}),
-}
+from shared.tasks import get_task
 
 
 def memory_kib(pid: int) -> tuple[int, int]:
@@ -55,12 +49,12 @@ def measure(per_task: bool) -> dict:
             stack.start()
             healthy_s = stack.wait_healthy(180)
             planned = {}
-            for task in map(model_task, models):
-                if task not in STATES:
-                    continue
-                start, goal = STATES[task]
-                body = {"task": task, "start": {"state": start}, "goal": {"state": goal}}
-                planned[task] = http.post("/plan", json=body).status_code
+            rng = np.random.default_rng(0)
+            for name in map(model_task, models):
+                task = get_task(name)
+                start, goal = (task.state_to_json(task.sample_state(rng)) for _ in range(2))
+                body = {"task": name, "start": {"state": start}, "goal": {"state": goal}}
+                planned[name] = http.post("/plan", json=body).status_code
             if set(planned.values()) != {200}:
                 raise RuntimeError(f"a plan failed: {planned}")
             per_process = {n: memory_kib(p.pid) for n, p in stack.processes.items()}
