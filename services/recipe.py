@@ -195,6 +195,7 @@ def train_model(
     if partial.exists():
         shutil.rmtree(partial)
     started = time.perf_counter()
+    trained: float | None = None
     try:
         say(f"[1/3] VAE-{recipe.metric}, {vae_cfg.steps} steps")
         final = train_vae(data_dir, partial / "vae", vae_cfg, progress=progress)
@@ -228,6 +229,13 @@ def train_model(
         (partial / RECORD).write_text(json.dumps(record, indent=2) + "\n")
         publish(partial, out)
     except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
+        if trained is None:
+            shutil.rmtree(partial, ignore_errors=True)
+        else:  # the hour's work is the VAE: kept for the step commands, not thrown away
+            say(
+                f"{partial / 'vae'}: the trained VAE is kept; build its roadmap with other "
+                f"settings: lsr build-roadmap --vae {partial / 'vae'} --data {data_dir} --out "
+                f"{partial / 'roadmap'} (then lsr train apn); lsr train model starts afresh"
+            )
         raise
     return figures

@@ -88,6 +88,18 @@ def test_one_command_makes_a_model_that_serves_and_plans(task, tmp_path, capsys)
     assert main(["plan", "--model", str(out), "--out", str(tmp_path / "plans"), *args]) == 0
 
 
+def test_a_failed_roadmap_keeps_the_trained_vae_and_says_how_to_go_on(tmp_path, capsys):
+    data = record("box_stacking", tmp_path / "data")
+    out = tmp_path / "model"
+    flags = [*TINY[:6], "--min-samples", "10000"]  # every region pruned: no roadmap
+    assert main(["train", "model", "--data", str(data), "--out", str(out), *flags]) != 0
+    printed = capsys.readouterr()
+    kept = tmp_path / "model.partial" / "vae"
+    assert (kept / "vae.safetensors").is_file() and not out.exists()
+    assert f"lsr build-roadmap --vae {kept}" in printed.out
+    assert "no nodes" in printed.err
+
+
 def test_settings_come_from_the_dataset_and_say_why(tmp_path):
     declared = record("cloth_folding", tmp_path / "d", settings={"w_eps": 0.8, "min_samples": 6})
     vae, roadmap, apn, why = choose(load_dataset(declared), Recipe())
