@@ -96,36 +96,59 @@ def vae_steps(pairs: int, batch_size: int = TrainConfig.batch_size) -> int:
     return max(DEFAULT_STEPS, MIN_EPOCHS * math.ceil(pairs / batch_size))
 
 
+class Choices:
+    """Where each setting comes from, in order: given, the dataset's task.json settings,
+    measured for its task (`Task.roadmap_settings`), the default; `why` says which."""
+
+    def __init__(self, task: str, settings: dict[str, Any]) -> None:
+        self.task, self.settings = task, settings
+        try:
+            self.own = get_task(task).roadmap_settings
+        except TaskError:  # a task known only from its data: nothing measured for it
+            self.own = Task.roadmap_settings
+        self.why: list[str] = []
+
+    def pick(self, name: str, given: Any, key: str, default: Any, reason: str) -> Any:
+        if given is not None:
+            self.why.append(f"{name} {given}: given")
+            return given
+        if self.settings.get(key) is not None:
+            value, source = self.settings[key], "the dataset's task.json settings"
+        elif self.own.get(key) is not None:
+            value, source = self.own[key], f"measured for {self.task} (docs/tasks)"
+        else:
+            value, source = default, reason
+        self.why.append(f"{name} {value}: {source}")
+        return value
+
+    def roadmap(
+        self,
+        metric: str,
+        eps_rule: EpsilonRule | None = None,
+        w_eps: float | None = None,
+        min_samples: int | None = None,
+    ) -> RoadmapConfig:
+        """Algorithm 1's settings, as `lsr train model` and `lsr build-roadmap` both choose."""
+        rule = self.pick("epsilon rule", eps_rule, "eps_rule", "stable", "the stable cut")
+        w = self.pick("w_eps", w_eps, "w_eps", 1.0, "Algorithm 1's fallback")
+        least = self.pick(
+            "min_samples", min_samples, "min_samples", None, "a tenth of the typical region"
+        )
+        return RoadmapConfig(
+            metric=metric,
+            eps_rule=rule,
+            w_eps=float(w),
+            min_samples=None if least is None else int(least),
+        )
+
+
 def choose(
     data: Dataset, recipe: Recipe
 ) -> tuple[TrainConfig, RoadmapConfig, APNTrainConfig, list[str]]:
     """The three steps' settings for this dataset, and a line saying where each came from."""
     settings = data.manifest.get("settings") or {}
-    try:
-        own = get_task(data.task).roadmap_settings
-    except TaskError:  # a task known only from its data: nothing measured for it
-        own = Task.roadmap_settings
-    why: list[str] = []
-
-    def declared(key: str) -> tuple[Any, str]:
-        """A setting the dataset's task.json gives, else one measured for its task."""
-        if settings.get(key) is not None:
-            return settings[key], "the dataset's task.json settings"
-        if own.get(key) is not None:
-            return own[key], f"measured for {data.task} (docs/tasks)"
-        return None, ""
-
-    def pick(name: str, given: Any, key: str, default: Any, reason: str) -> Any:
-        if given is not None:
-            why.append(f"{name} {given}: given")
-            return given
-        value, source = declared(key)
-        if value is not None:
-            why.append(f"{name} {value}: {source}")
-            return value
-        why.append(f"{name} {default}: {reason}")
-        return default
-
+    choices = Choices(data.task, settings)
+    pick, why = choices.pick, choices.why
     steps = pick(
         "vae steps",
         recipe.vae_steps,
@@ -140,21 +163,7 @@ def choose(
     source = "the dataset's task.json settings" if dm is not None else "the paper's for the task"
     why.append(f"d_m {vae.d_m(data.task)}: {source}")
     metric = "l1" if recipe.metric == "none" else recipe.metric
-    eps_rule = pick("epsilon rule", recipe.eps_rule, "eps_rule", "stable", "the stable cut")
-    w_eps = pick("w_eps", recipe.w_eps, "w_eps", 1.0, "Algorithm 1's fallback")
-    min_samples = pick(
-        "min_samples",
-        recipe.min_samples,
-        "min_samples",
-        None,
-        "a tenth of the typical region",
-    )
-    roadmap = RoadmapConfig(
-        metric=metric,
-        eps_rule=eps_rule,
-        w_eps=float(w_eps),
-        min_samples=None if min_samples is None else int(min_samples),
-    )
+    roadmap = choices.roadmap(metric, recipe.eps_rule, recipe.w_eps, recipe.min_samples)
     apn = APNTrainConfig(
         **({"steps": recipe.apn_steps} if recipe.apn_steps is not None else {}),
         seed=recipe.seed,

@@ -5,30 +5,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 
 def cmd_build_roadmap(args: argparse.Namespace) -> int:
-    from services.cli.common import dataset_setting
+    from dataclasses import replace
+
     from services.encoder.checkpoint import read_vae_config
     from services.planner.build import build_from_dataset, default_metric
-    from services.planner.roadmap import RoadmapConfig
+    from services.recipe import Choices
+    from shared.dataset import read_manifest
 
     metric = args.metric or default_metric(read_vae_config(args.vae))
-    # Flags first, then the dataset's task.json settings, then the defaults (w 1; pruning
-    # automatic, as RoadmapConfig's min_samples None).
-    w_eps = args.w_eps if args.w_eps is not None else dataset_setting(args.data, "w_eps")
-    min_samples = args.min_samples
-    if min_samples is None:
-        min_samples = dataset_setting(args.data, "min_samples")
-    config = RoadmapConfig(
-        metric=metric,
-        w_eps=1.0 if w_eps is None else float(w_eps),
-        min_samples=None if min_samples is None else int(min_samples),
-        eps_rule=args.eps_rule,
-        matching=args.matching,
-        min_edge_weight=args.min_edge_weight,
-    )
+    # As lsr train model chooses: flags, the dataset's task.json settings, what was measured
+    # for its task, then the defaults (the stable cut, w 1, pruning automatic).
+    manifest = read_manifest(args.data)
+    choices = Choices(manifest["task"], manifest.get("settings") or {})
+    chosen = choices.roadmap(metric, args.eps_rule, args.w_eps, args.min_samples)
+    config = replace(chosen, matching=args.matching, min_edge_weight=args.min_edge_weight)
+    for line in choices.why:
+        print(f"  {line}", file=sys.stderr)
     summary = build_from_dataset(args.vae, args.data, config, args.out)
     print(json.dumps(summary))
     return 0
@@ -84,15 +81,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     roadmap.add_argument("--data", required=True, type=Path, help="training dataset folder")
     roadmap.add_argument(
         "--eps-rule",
-        default="stable",
         choices=["stable", "paper"],
-        help="stable: the cut that keeps the regions unchanged longest (default); "
-        "paper: Algorithm 1's mu0 + w_eps sigma0",
+        help="stable: the cut that keeps the regions unchanged longest; paper: Algorithm 1's "
+        "mu0 + w_eps sigma0 (default: task.json's settings, else what was measured for the "
+        "task, else stable)",
     )
     roadmap.add_argument(
         "--w-eps",
         type=float,
-        help="w of the paper's rule (and its fallback); default: task.json's settings, else 1",
+        help="w of the paper's rule (and its fallback); default: task.json's settings, else "
+        "what was measured for the task, else 1",
     )
     roadmap.add_argument(
         "--min-samples",

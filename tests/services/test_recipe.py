@@ -100,6 +100,19 @@ def test_a_failed_roadmap_keeps_the_trained_vae_and_says_how_to_go_on(tmp_path, 
     assert "no nodes" in printed.err
 
 
+def test_build_roadmap_chooses_as_train_model_does(tmp_path, capsys):
+    data = record("rope_box", tmp_path / "data")
+    out = tmp_path / "model"
+    assert main(["train", "model", "--data", str(data), "--out", str(out), *TINY]) == 0
+    capsys.readouterr()
+    roadmap = tmp_path / "roadmap"
+    args = ["--vae", str(out / "vae"), "--data", str(data), "--out", str(roadmap)]
+    assert main(["build-roadmap", *args]) == 0
+    said = capsys.readouterr()
+    assert "epsilon rule paper: measured for rope_box" in said.err and "w_eps 4.0" in said.err
+    assert json.loads(said.out.strip().splitlines()[-1])["eps_rule"] == "paper"
+
+
 def test_settings_come_from_the_dataset_and_say_why(tmp_path):
     declared = record("cloth_folding", tmp_path / "d", settings={"w_eps": 0.8, "min_samples": 6})
     vae, roadmap, apn, why = choose(load_dataset(declared), Recipe())
