@@ -509,29 +509,23 @@ def test_execute_reaches_the_goal(http):
     )
 
 
-def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
+def robot_r2(stack, access, start: dict, goal: dict, *flags: str) -> subprocess.CompletedProcess:
+    """`lsr robot` as robot r2 with its credentials, from `start` to `goal`; it must succeed."""
+    ends = ["--start-state", json.dumps(start), "--goal-state", json.dumps(goal)]
     result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "robot",
-            "--robot-id",
-            "r2",
-            "--connect",
-            stack.config.endpoint,
-            "--start-state",
-            json.dumps(START),
-            "--goal-state",
-            json.dumps(GOAL),
-            "--report",
-        ],
+        [sys.executable, "-m", "services.cli", "robot", "--robot-id", "r2", *ends, *flags,
+         "--connect", stack.config.endpoint],
         capture_output=True,
         text=True,
         timeout=120,
         env=as_role(access, "robot-r2"),
-    )
+    )  # fmt: skip
     assert result.returncode == 0, result.stdout + result.stderr
+    return result
+
+
+def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
+    result = robot_r2(stack, access, START, GOAL, "--report")
     assert "[r2] step 1:" in result.stdout and "reached the goal" in result.stdout
     # Every executed step reached the gateway's experience folder over zenoh, with its action.
     steps = result.stdout.count("[r2] step ")
@@ -546,17 +540,7 @@ def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
 
 
 def test_robot_client_moves_the_rope_box_to_its_goal(stack, access):
-    command = ["robot", "--robot-id", "r2", "--task", "rope_box"]
-    ends = ["--start-state", json.dumps(ROPE_START), "--goal-state", json.dumps(ROPE_GOAL)]
-    ends += ["--connect", stack.config.endpoint]
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", *command, *ends],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env=as_role(access, "robot-r2"),
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
+    result = robot_r2(stack, access, ROPE_START, ROPE_GOAL, "--task", "rope_box")
     assert "[r2] step 2:" in result.stdout and "reached the goal" in result.stdout
 
 
