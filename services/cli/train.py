@@ -102,6 +102,7 @@ def cmd_train_model(args: argparse.Namespace) -> int:
         min_samples=args.min_samples,
         apn_steps=args.apn_steps,
         apn_restarts=args.apn_restarts or APN_RESTARTS,
+        vae=args.vae,
     )
     figures = train_model(args.data, args.out, recipe, overwrite=args.overwrite)
     print(
@@ -129,6 +130,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     model.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     model.add_argument("--json", action="store_true", help="the figures as JSON, last line")
     model.add_argument("--overwrite", action="store_true", help="replace a model already in OUT")
+    model.add_argument(
+        "--vae",
+        type=Path,
+        help="a VAE trained on this dataset before (a model's, or one kept in OUT.partial): "
+        "build the roadmap and train the APN only, in its metric",
+    )
     research = model.add_argument_group("research (never needed: chosen from the dataset)")
     research.add_argument("--vae-steps", type=int)
     research.add_argument("--eps-rule", choices=["stable", "paper"])

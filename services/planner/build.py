@@ -10,7 +10,7 @@ from typing import Any
 
 from services.encoder.checkpoint import load_vae, read_vae_config
 from services.planner.evaluate import NodeLabels, label_nodes
-from services.planner.exits import action_exits
+from services.planner.exits import action_classes, action_exits
 from services.planner.knowing import FILE as MATCH_FILE
 from services.planner.knowing import Calibration, calibrate, ratios, save_calibration
 from services.planner.members import MEMBERS, Members, interleave
@@ -54,9 +54,10 @@ def build_from_dataset(
     encoded = time.perf_counter()
     declared = declare_task(data.spec)
     config = replace(config, one_way=not declared.spec.undo)  # the APN knows no other way
-    roadmap = build_roadmap(members.points[0::2], members.points[1::2], data.a, config)
-    # where each node's actions lead: memory for nodes that stand for look-alike states
     same = declared.same_action
+    classes = action_classes(data.a, data.u, same)
+    roadmap = build_roadmap(members.points[0::2], members.points[1::2], data.a, config, classes)
+    # where each node's actions lead: memory for nodes that stand for look-alike states
     roadmap = replace(roadmap, exits=action_exits(roadmap.point_node, data.a, data.u, same))
     built = time.perf_counter()
     roadmap.save(out_dir)

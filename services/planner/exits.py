@@ -32,6 +32,22 @@ from shared.graphs import walks
 Turns = dict[tuple[int, int], set[int]]  # (from a, at b) -> nodes c that b must not lead on to
 
 
+def action_classes(
+    a: np.ndarray, u: np.ndarray, same_action: Callable[[np.ndarray, np.ndarray], bool]
+) -> np.ndarray:
+    """(N,) int64: each tuple's action class, numbered in order of first use, -1 for no-action
+    tuples; two actions share one when `same_action` says so (the same move, wherever made)."""
+    firsts: list[np.ndarray] = []  # each class's first action
+    classes = np.full(len(a), -1, np.int64)
+    for i in np.flatnonzero(np.asarray(a) == 1).tolist():
+        k = next((k for k, first in enumerate(firsts) if same_action(first, u[i])), None)
+        if k is None:
+            k = len(firsts)
+            firsts.append(u[i])
+        classes[i] = k
+    return classes
+
+
 def action_exits(
     point_node: np.ndarray,
     a: np.ndarray,
@@ -39,20 +55,12 @@ def action_exits(
     same_action: Callable[[np.ndarray, np.ndarray], bool],
 ) -> np.ndarray:
     """(X, 3) int64 rows (from node, to node, action class), sorted and unique: which action
-    of the training tuples (`u[i]` where `a[i] == 1`) leads from each node to which. Classes
-    are numbered over the whole roadmap, in order of first use; two actions share one when
-    `same_action` says so (the same move, wherever it is made)."""
-    firsts: list[np.ndarray] = []  # each class's first action
-    rows: set[tuple[int, int, int]] = set()
-    for i in np.flatnonzero(np.asarray(a) == 1).tolist():
-        start, end = int(point_node[2 * i]), int(point_node[2 * i + 1])
-        if start < 0 or end < 0 or start == end:
-            continue
-        k = next((k for k, first in enumerate(firsts) if same_action(first, u[i])), None)
-        if k is None:
-            k = len(firsts)
-            firsts.append(u[i])
-        rows.add((start, end, k))
+    of the training tuples (`u[i]` where `a[i] == 1`) leads from each node to which
+    (classes by `action_classes`)."""
+    start, end = point_node[0::2], point_node[1::2]
+    joins = (np.asarray(a) == 1) & (start >= 0) & (end >= 0) & (start != end)
+    classes = action_classes(joins, u, same_action)
+    rows = {(int(start[i]), int(end[i]), int(classes[i])) for i in np.flatnonzero(joins)}
     return np.array(sorted(rows), np.int64).reshape(-1, 3)
 
 

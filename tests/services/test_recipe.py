@@ -96,8 +96,37 @@ def test_a_failed_roadmap_keeps_the_trained_vae_and_says_how_to_go_on(tmp_path, 
     printed = capsys.readouterr()
     kept = tmp_path / "model.partial" / "vae"
     assert (kept / "vae.safetensors").is_file() and not out.exists()
-    assert f"lsr build-roadmap --vae {kept}" in printed.out
+    assert f"--vae {kept}" in printed.out
     assert "no nodes" in printed.err
+    # going on from the kept VAE: its roadmap and APN only
+    flags = [*TINY[2:], "--vae", str(kept)]
+    weights = (kept / "vae.safetensors").read_bytes()
+    assert main(["train", "model", "--data", str(data), "--out", str(out), *flags]) == 0
+    said = capsys.readouterr()
+    assert f"trained before: {kept}" in said.out and "vae steps" not in said.out
+    assert json.loads((out / "recipe.json").read_text())["vae"] == str(kept)
+    assert (out / "vae" / "vae.safetensors").read_bytes() == weights
+    assert not kept.exists()  # the partial folder became the model
+
+
+def test_a_vae_of_another_task_is_not_reused(tmp_path, capsys):
+    out = tmp_path / "model"
+    assert main(["train", "model", "--data", str(record("rope_box", tmp_path / "rope")),
+                 "--out", str(out), *TINY]) == 0  # fmt: skip
+    data = record("box_stacking", tmp_path / "box")
+    args = ["--data", str(data), "--out", str(tmp_path / "other"), "--vae", str(out / "vae")]
+    assert main(["train", "model", *args, *TINY]) != 0
+    assert "trained on rope_box at 32 px, the dataset is box_stacking" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
+
+
+def test_a_collapsed_vae_is_named_and_nothing_kept():
+    from services.recipe import CollapsedVAEError, check_spread
+
+    check_spread({"action_mean": 22.9, "noaction_mean": 0.44}, "l1")
+    check_spread({"action_mean": 0.05, "noaction_mean": 0.04}, "none")  # no action term
+    with pytest.raises(CollapsedVAEError, match=r"collapsed: action pairs lie 0\.05 apart"):
+        check_spread({"action_mean": 0.05, "noaction_mean": 0.04}, "l1")
 
 
 def test_build_roadmap_chooses_as_train_model_does(tmp_path, capsys):

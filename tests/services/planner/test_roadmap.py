@@ -68,6 +68,34 @@ def node_of_class(roadmap, classes):
     return mapping
 
 
+def test_default_pruning_keeps_a_small_region_whose_moves_no_big_region_shows():
+    """A small region with a big region's move (the same action into the same region) is a
+    fragment of that region's state; one whose moves no big region shows is a state seen
+    rarely, kept by the default pruning and pruned by an explicit min_samples."""
+    rng = np.random.default_rng(0)
+    big_a, big_b, big_c, fragment, rare = range(5)
+    centres = rng.normal(0.0, 10.0, size=(5, 8))
+    pairs = [(c, c, 0, -1) for c in (big_a, big_b, big_c) for _ in range(20)]
+    pairs += [(big_a, big_b, 1, 0), (big_b, big_c, 1, 1)] * 3
+    pairs += [(fragment, big_b, 1, 0), (rare, big_c, 1, 2)]
+    c1, c2, a, action = (np.array(column) for column in zip(*pairs, strict=True))
+    z1 = (centres[c1] + rng.normal(size=(len(a), 8)) * 0.01).astype(np.float32)
+    z2 = (centres[c2] + rng.normal(size=(len(a), 8)) * 0.01).astype(np.float32)
+    point_class = np.stack([c1, c2], axis=1).ravel()
+
+    roadmap = build_roadmap(z1, z2, a.astype(np.int8), RoadmapConfig(), action)
+    assert roadmap.stats["min_samples"] > 1
+    assert (roadmap.point_node[point_class == fragment] == -1).all()
+    assert (roadmap.point_node[point_class == rare] >= 0).all()
+    assert roadmap.num_nodes == 4 and roadmap.stats["small_regions_kept"] == 1
+    least = roadmap.stats["min_samples"]
+    for pruned in (
+        build_roadmap(z1, z2, a.astype(np.int8), RoadmapConfig(min_samples=least), action),
+        build_roadmap(z1, z2, a.astype(np.int8), RoadmapConfig()),  # moves unknown
+    ):
+        assert pruned.num_nodes == 3 and (pruned.point_node[point_class == rare] == -1).all()
+
+
 @pytest.mark.parametrize("metric", METRICS)
 @pytest.mark.parametrize("eps_rule", ["paper", "stable"])
 def test_build_recovers_classes_and_graph(metric, eps_rule):
