@@ -170,11 +170,15 @@ class Choices:
         least = self.pick(
             "min_samples", min_samples, "min_samples", None, "a tenth of the typical region"
         )
+        rare = least is None and self.pick(
+            "keep_rare", None, "keep_rare", True, "a small region with moves of its own is a state"
+        )
         return RoadmapConfig(
             metric=metric,
             eps_rule=rule,
             w_eps=float(w),
             min_samples=None if least is None else int(least),
+            keep_rare=bool(rare),
         )
 
 

@@ -76,7 +76,12 @@ _OPTIONAL_KEYS = ("twins", "whitening", "exits")
 
 
 # config values roadmap.json leaves out: readers from before these keys know none of them
-_UNSAID_DEFAULTS = (("matching", "metric"), ("min_edge_weight", 1), ("one_way", False))
+_UNSAID_DEFAULTS = (
+    ("matching", "metric"),
+    ("min_edge_weight", 1),
+    ("one_way", False),
+    ("keep_rare", True),
+)
 
 
 @dataclass(frozen=True)
@@ -88,7 +93,9 @@ class RoadmapConfig:
     falls back to the paper's rule where no such cut exists. min_samples None prunes regions
     smaller than a tenth of the typical point's region (at least 1): 3 with the shipped box
     stacking data (35 images a state), 1 with 1000 tuples (7 a state); given each tuple's
-    action class, it keeps the small regions whose moves no big region shows (`_fragments`).
+    action class and keep_rare, it keeps the small regions whose moves no big region shows
+    (`_fragments`). A task whose one state takes looks that move differently (rope-box's
+    bunched ropes) declares keep_rare False: there such regions are looks, not states.
 
     matching "whitened" matches an image to the nearest node after whitening the latents by
     the spread of images within their nodes (see fit_whitening); "metric" in d, as the paper.
@@ -108,6 +115,7 @@ class RoadmapConfig:
     matching: Matching = "whitened"
     min_edge_weight: int = 1
     one_way: bool = False
+    keep_rare: bool = True
 
     def __post_init__(self) -> None:
         _check_metric(self.metric)
@@ -124,8 +132,9 @@ class RoadmapConfig:
         weight = self.min_edge_weight
         if isinstance(weight, bool) or not isinstance(weight, int) or weight < 1:
             raise RoadmapError(f"min_edge_weight must be an integer >= 1, got {weight!r}")
-        if not isinstance(self.one_way, bool):
-            raise RoadmapError(f"one_way must be true or false, got {self.one_way!r}")
+        for name in ("one_way", "keep_rare"):
+            if not isinstance(getattr(self, name), bool):
+                raise RoadmapError(f"{name} must be true or false, got {getattr(self, name)!r}")
         if self.min_samples is None:
             return
         if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, int):
@@ -306,7 +315,7 @@ def build_roadmap(
         min_samples = max(1, int(_MIN_SAMPLES_FRACTION * typical))
     big = sizes >= min_samples
     fragments = ~big
-    if config.min_samples is None and action_class is not None:
+    if config.min_samples is None and config.keep_rare and action_class is not None:
         fragments = _fragments(labels, pair_ids, np.asarray(action_class)[pair_ids], big)
         big |= ~fragments
     strong = weights >= config.min_edge_weight

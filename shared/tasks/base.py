@@ -86,8 +86,8 @@ class Task(ABC, Generic[State, Action]):
     # action-pair distance under the baseline VAE; a task the paper did not study gets box
     # stacking's values.
     d_m: ClassVar[Mapping[str, float]] = {"l1": 20.0, "l2": 5.0, "inf": 2.5}
-    # Roadmap settings (eps_rule, w_eps, min_samples) measured for the task where the defaults
-    # do not hold; a dataset's task.json settings and flags come first.
+    # Roadmap settings (eps_rule, w_eps, min_samples, keep_rare) measured for the task where
+    # the defaults do not hold; a dataset's task.json settings and flags come first.
     roadmap_settings: ClassVar[Mapping[str, Any]] = {}
     # The look (shared.appearance level) its data and renders take when none is asked for.
     default_look: ClassVar[str] = "clean"

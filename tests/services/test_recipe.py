@@ -139,6 +139,7 @@ def test_build_roadmap_chooses_as_train_model_does(tmp_path, capsys):
     assert main(["build-roadmap", *args]) == 0
     said = capsys.readouterr()
     assert "epsilon rule paper: measured for rope_box" in said.err and "w_eps 4.0" in said.err
+    assert "keep_rare False: measured for rope_box" in said.err
     assert json.loads(said.out.strip().splitlines()[-1])["eps_rule"] == "paper"
 
 

@@ -92,6 +92,7 @@ def test_default_pruning_keeps_a_small_region_whose_moves_no_big_region_shows():
     for pruned in (
         build_roadmap(z1, z2, a.astype(np.int8), RoadmapConfig(min_samples=least), action),
         build_roadmap(z1, z2, a.astype(np.int8), RoadmapConfig()),  # moves unknown
+        build_roadmap(z1, z2, a.astype(np.int8), RoadmapConfig(keep_rare=False), action),
     ):
         assert pruned.num_nodes == 3 and (pruned.point_node[point_class == rare] == -1).all()
 
