@@ -230,13 +230,13 @@ def train_model(
     """Train VAE, roadmap (calibrated) and APN from `data_dir` into `out`; the figures."""
     recipe = recipe or Recipe()
     out = Path(out)
-    reused = reuse_vae(recipe.vae, load_dataset(data_dir)) if recipe.vae else None
-    if reused is not None:  # the roadmap is built in the metric the VAE was trained with
-        recipe = replace(recipe, metric=reused["train"]["metric"])
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise ValueError(f"{out}: exists and is not empty; choose another --out or --overwrite")
     data = load_dataset(data_dir)
     check_trainable(data, data_dir)
+    reused = reuse_vae(recipe.vae, data) if recipe.vae else None
+    if reused is not None:  # the roadmap is built in the metric the VAE was trained with
+        recipe = replace(recipe, metric=reused["train"]["metric"])
     vae_cfg, roadmap_cfg, apn_cfg, why = choose(data, recipe)
     counts = {"tuples": len(data), "action_pairs": int(data.a.sum())}
     say(

@@ -314,10 +314,8 @@ def build_roadmap(
         typical = float(np.median(sizes[labels]))  # the region size of the typical point
         min_samples = max(1, int(_MIN_SAMPLES_FRACTION * typical))
     big = sizes >= min_samples
-    fragments = ~big
     if config.min_samples is None and config.keep_rare and action_class is not None:
-        fragments = _fragments(labels, pair_ids, np.asarray(action_class)[pair_ids], big)
-        big |= ~fragments
+        big |= ~_fragments(labels, pair_ids, np.asarray(action_class)[pair_ids], big)
     strong = weights >= config.min_edge_weight
     kept_edge = big[edges[:, 0]] & big[edges[:, 1]] & strong
     linked = np.zeros(n_regions, dtype=bool)
