@@ -189,21 +189,23 @@ def choose(
     settings = data.manifest.get("settings") or {}
     choices = Choices(data.task, settings)
     pick, why = choices.pick, choices.why
-    steps = pick(
-        "vae steps",
-        recipe.vae_steps,
-        "vae_steps",
-        vae_steps(len(data)),
-        f"{len(data)} tuples: max({DEFAULT_STEPS}, {MIN_EPOCHS} epochs)",
-    )
     dm = settings.get("d_m")
+    if recipe.vae is not None:  # nothing to train: its steps and d_m were chosen back then
+        why.append(f"vae {recipe.vae}: given, trained before (metric {recipe.metric})")
+        steps = DEFAULT_STEPS
+    else:
+        steps = pick(
+            "vae steps",
+            recipe.vae_steps,
+            "vae_steps",
+            vae_steps(len(data)),
+            f"{len(data)} tuples: max({DEFAULT_STEPS}, {MIN_EPOCHS} epochs)",
+        )
+        source = "the paper's for the task" if dm is None else "the dataset's task.json settings"
+        why.append(f"d_m {TrainConfig(metric=recipe.metric, dm=dm).d_m(data.task)}: {source}")
     vae = TrainConfig(
         metric=recipe.metric, dm=dm, steps=int(steps), seed=recipe.seed, device=recipe.device
     )
-    source = "the dataset's task.json settings" if dm is not None else "the paper's for the task"
-    why.append(f"d_m {vae.d_m(data.task)}: {source}")
-    if recipe.vae is not None:
-        why[-2:] = [f"vae {recipe.vae}: given, trained before (metric {recipe.metric})"]
     metric = "l1" if recipe.metric == "none" else recipe.metric
     roadmap = choices.roadmap(metric, recipe.eps_rule, recipe.w_eps, recipe.min_samples)
     apn = APNTrainConfig(
