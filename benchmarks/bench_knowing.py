@@ -23,6 +23,10 @@ model (score REFUSED), and for every frame the model knows it says whether its n
 node stands for the frame's true state (a camera turned upside down registers back upright).
     .venv/bin/python benchmarks/bench_knowing.py --model models/box_stacking \
         --test data/box_camera/test_camera --frames 300 --json runs/knowing/box_frames.json
+
+With `--show KIND --figure OUT`, the images of one transform that the model knows, to look at
+rather than count: `--per-kind` test images drawn with `--seed`, transformed, and the first 12
+known drawn in rows (the test image, the transformed one, the decoded node it is known at).
 """
 
 from __future__ import annotations
@@ -235,6 +239,45 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
+def show_known(args: argparse.Namespace, count: int = 12) -> str:
+    """The first `count` images of the transform `args.show` the model knows, drawn in rows
+    (test image, transformed image, the decoded node it is known at) into `args.figure`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from services.encoder.checkpoint import decode_latents
+
+    if args.show not in TRANSFORMS:
+        raise SystemExit(f"--show: one of {', '.join(TRANSFORMS)}, got {args.show!r}")
+    vae, _, roadmap, _ = load_model(args.model)
+    calibration = knowing.load_calibration(roadmap_dir(args.model), roadmap)
+    planner = VisualPlanner(vae, roadmap, calibration)
+    test = load_test_images(args.test)[0]
+    rng = np.random.default_rng(args.seed)
+    drawn = test[rng.choice(len(test), args.per_kind, replace=False)]
+    moved = TRANSFORMS[args.show](drawn, rng)
+    z, errors = planner.look(moved)
+    nodes, terms = knowing.ratios(roadmap, calibration, z, errors)
+    known = np.flatnonzero(terms.max(1) <= 1)[:count]
+    if not len(known):
+        return f"{args.show}: none of {len(moved)} known"
+    decoded = decode_latents(vae, roadmap.nodes[nodes[known]].astype(np.float32))
+    fig, axes = plt.subplots(len(known), 3, figsize=(4.2, 1.45 * len(known)), squeeze=False)
+    titles = ("test image", args.show, "node known at")
+    for row, (k, node_image) in enumerate(zip(known, decoded, strict=True)):
+        for col, image in enumerate((drawn[k], moved[k], node_image)):
+            axes[row][col].imshow(image)
+            axes[row][col].axis("off")
+            if row == 0:
+                axes[row][col].set_title(titles[col], fontsize=7)
+    fig.tight_layout()
+    fig.savefig(args.figure, dpi=100)
+    share = int((terms.max(1) <= 1).sum())
+    return f"{args.show}: {share} of {len(moved)} known; the first {len(known)} in {args.figure}"
+
+
 def table(result: dict) -> str:
     lines = [
         f"{result['model']} ({result['task']}, test {result['test']}):\n",
@@ -293,8 +336,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path)
     parser.add_argument("--figure", type=Path, help="draw from the JSON files given after it")
+    parser.add_argument("--show", help="a transform whose known images --figure draws")
     parser.add_argument("results", type=Path, nargs="*")
     args = parser.parse_args()
+    if args.show:
+        if args.model is None or args.test is None or args.figure is None:
+            parser.error("--show needs --model, --test and --figure")
+        print(show_known(args))
+        return
     if args.figure:
         figure(args.results, args.figure)
         print(f"wrote {args.figure}")
