@@ -197,11 +197,18 @@ def scores(planner: VisualPlanner, images: np.ndarray) -> np.ndarray:
     return knowing.ratios(planner.roadmap, planner.calibration, z, errors)[1]
 
 
+def _planner(model: Path) -> tuple[VisualPlanner, dict]:
+    """The model's planner with its calibration, and its VAE's config."""
+    vae, vae_config, roadmap, _ = load_model(model)
+    calibration = knowing.load_calibration(roadmap_dir(model), roadmap)
+    return VisualPlanner(vae, roadmap, calibration), vae_config
+
+
 def run(args: argparse.Namespace) -> dict:
     started = time.perf_counter()
-    vae, vae_config, roadmap, _ = load_model(args.model)
-    calibration = knowing.load_calibration(roadmap_dir(args.model), roadmap)
-    planner = VisualPlanner(vae, roadmap, calibration)
+    planner, vae_config = _planner(args.model)
+    calibration = planner.calibration
+    assert calibration is not None  # load_calibration raised where there is none
     test, _, task = load_test_images(args.test)
     rng = np.random.default_rng(args.seed)
     result = {
@@ -251,9 +258,9 @@ def show_known(args: argparse.Namespace, count: int = 12) -> str:
 
     if args.show not in TRANSFORMS:
         raise SystemExit(f"--show: one of {', '.join(TRANSFORMS)}, got {args.show!r}")
-    vae, _, roadmap, _ = load_model(args.model)
-    calibration = knowing.load_calibration(roadmap_dir(args.model), roadmap)
-    planner = VisualPlanner(vae, roadmap, calibration)
+    planner, _ = _planner(args.model)
+    roadmap, calibration = planner.roadmap, planner.calibration
+    assert calibration is not None
     test = load_test_images(args.test)[0]
     rng = np.random.default_rng(args.seed)
     drawn = test[rng.choice(len(test), args.per_kind, replace=False)]
@@ -263,7 +270,7 @@ def show_known(args: argparse.Namespace, count: int = 12) -> str:
     known = np.flatnonzero(terms.max(1) <= 1)[:count]
     if not len(known):
         return f"{args.show}: none of {len(moved)} known"
-    decoded = decode_latents(vae, roadmap.nodes[nodes[known]].astype(np.float32))
+    decoded = decode_latents(planner.vae, roadmap.nodes[nodes[known]].astype(np.float32))
     fig, axes = plt.subplots(len(known), 3, figsize=(4.2, 1.45 * len(known)), squeeze=False)
     titles = ("test image", args.show, "node known at")
     for row, (k, node_image) in enumerate(zip(known, decoded, strict=True)):
@@ -274,8 +281,8 @@ def show_known(args: argparse.Namespace, count: int = 12) -> str:
                 axes[row][col].set_title(titles[col], fontsize=7)
     fig.tight_layout()
     fig.savefig(args.figure, dpi=100)
-    share = int((terms.max(1) <= 1).sum())
-    return f"{args.show}: {share} of {len(moved)} known; the first {len(known)} in {args.figure}"
+    everyone = int((terms.max(1) <= 1).sum())
+    return f"{args.show}: {everyone} of {len(moved)} known; the first {len(known)} in {args.figure}"
 
 
 def table(result: dict) -> str:
