@@ -44,9 +44,23 @@ from shared.tasks import get_task  # noqa: E402
 TASK = "box_stacking"
 
 
+def descendants(pid: int) -> list[int]:
+    """`pid` and every process under it (an encoder's frames helper among them)."""
+    found = [pid]
+    for task in Path(f"/proc/{pid}/task").glob("*/children"):
+        try:
+            children = task.read_text().split()
+        except OSError:
+            continue
+        for child in children:
+            found += descendants(int(child))
+    return found
+
+
 def rss_mb(pids: list[int]) -> float:
+    """VmRSS summed over the stack's processes and their children."""
     total = 0
-    for pid in pids:
+    for pid in (p for top in pids for p in descendants(top)):
         try:
             lines = Path(f"/proc/{pid}/status").read_text().splitlines()
         except OSError:
