@@ -2,14 +2,18 @@
 
 Starts the stack (`lsr up`'s launcher) with the shipped model and sends image-to-image /plan
 requests at concurrency 1 between the same random states, once as the views at the model's
-size (taken as in the table frame already) and once as the cell camera's whole frames (400 px
-PNG, sent to the encoder as those bytes, which decodes and registers them), in alternating
+size (taken as in the table frame already: registered here) and as the cell camera's whole
+frames (400 px, as PNG and as JPEG at quality 90, sent to the encoder as those bytes, which
+decodes and registers them), at the `camera` look by default (a camera's noise: a frame's PNG
+is 110 kB, where at `clean` it is 9 kB): from a fixed camera (one look for every state: a
+cell's, whose markers registration tracks from frame to frame) and from a camera that moved
+before every frame (each state a new look: the markers are looked for again), in alternating
 rounds, since this shared VM drifts from run to run. Prints p50 / p99 of each, the encoder's
 handler time (which holds the decoding and registration), the request sizes, and registration
 alone per frame in one process.
 
     .venv/bin/python benchmarks/bench_plan_frames.py [--rounds 6] [--per-round 100] [--pairs 50]
-        [--concurrency 1]
+        [--concurrency 1] [--appearance camera]
 """
 
 from __future__ import annotations
@@ -62,13 +66,25 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--concurrency", type=int, default=1, help="clients at once")
+    parser.add_argument(
+        "--appearance", default="camera", help="the look of the states' images (the model's)"
+    )
     args = parser.parse_args()
+    same = {"pairs": args.pairs, "size": 64, "seed": args.seed, "appearance": args.appearance}
     kinds = {
-        "views (64 px)": request_bodies(args.pairs, 64, args.seed),
-        "frames (400 px)": request_bodies(args.pairs, 64, args.seed, frames=True),
+        "views (64 px)": request_bodies(**same),
+        "frames (400 px)": request_bodies(**same, frames=True, fixed_camera=True),
+        "frames (400 px JPEG 90)": request_bodies(
+            **same, frames=True, jpeg_quality=90, fixed_camera=True
+        ),
+        "frames, the camera moved (400 px)": request_bodies(**same, frames=True),
+        "frames, the camera moved (400 px JPEG 90)": request_bodies(
+            **same, frames=True, jpeg_quality=90
+        ),
     }
     sizes = {k: int(np.median([len(b["start"]["image"]) for b in v])) for k, v in kinds.items()}
-    print("registration alone:", json.dumps(registration_alone(kinds["frames (400 px)"], 64)))
+    for kind in ("frames (400 px)", "frames, the camera moved (400 px)"):
+        print(f"registration alone, {kind}:", json.dumps(registration_alone(kinds[kind], 64)))
     runs: dict[str, list[dict]] = {kind: [] for kind in kinds}
     with tempfile.TemporaryDirectory() as logs:
         config = StackConfig(
@@ -84,7 +100,7 @@ def main() -> None:
                     )
     print(
         f"model {args.model}, {args.rounds} rounds of {args.per_round} requests each, "
-        f"concurrency {args.concurrency}"
+        f"concurrency {args.concurrency}, images at {args.appearance}"
     )
     print(
         "| images | base64 bytes (p50) | errors | /plan p50 / p99 (ms) | requests/s "

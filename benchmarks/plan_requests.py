@@ -3,13 +3,16 @@ the Server-Timing header read back."""
 
 from __future__ import annotations
 
+import base64
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from services.sim.workcell import Observer
 from services.sim.worlds import make_world
 from shared.images import png_b64
 from shared.tasks import get_task
@@ -24,18 +27,37 @@ def percentiles(seconds: list[float]) -> dict[str, float]:
     }
 
 
-def request_bodies(pairs: int, size: int, seed: int, frames: bool = False) -> list[dict]:
-    """Image-to-image box-stacking /plan bodies between random states, 8 plans at most;
-    `frames`: the cell camera's whole frames (registered by the encoder), not the views."""
+def request_bodies(
+    pairs: int,
+    size: int,
+    seed: int,
+    frames: bool = False,
+    appearance: str | None = None,
+    jpeg_quality: int | None = None,
+    fixed_camera: bool = False,
+) -> list[dict]:
+    """Image-to-image box-stacking /plan bodies between random states, 8 plans at most, at
+    `appearance` (default: the task's own): the views a model is given (registered where the
+    look is a camera's), or with `frames` the cell camera's whole frames (registered by the
+    encoder); PNG, or JPEG at `jpeg_quality`. Each state is a new look (lights, camera pose:
+    a camera moved since the last frame), or with `fixed_camera` one look for all (a cell's)."""
     task = get_task("box_stacking")
-    rng = np.random.default_rng(seed)
+    rng, looks = np.random.default_rng(seed), np.random.default_rng(seed + 1)  # same states
     bodies = []
-    with make_world("box_stacking", size) as world:
+    with make_world("box_stacking", size, appearance=appearance) as world:
+        observer = Observer(world, register=not frames)
         for _ in range(pairs):
             images = []
             for state in (task.sample_state(rng), task.sample_state(rng)):
-                world.reset(state, rng)
-                images.append(png_b64(world.frame() if frames else world.render()))
+                world.reset(state, np.random.default_rng(seed) if fixed_camera else looks)
+                image = observer.see()
+                if jpeg_quality is None:
+                    images.append(png_b64(image))
+                else:
+                    jpeg = cv2.imencode(
+                        ".jpg", image[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
+                    )[1]
+                    images.append(base64.b64encode(jpeg.tobytes()).decode())
             bodies.append(
                 {
                     "task": "box_stacking",
