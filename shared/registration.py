@@ -12,13 +12,14 @@ with a reason that says which markers were missing or what was implausible.
 from __future__ import annotations
 
 import functools
+import math
 import threading
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from shared.workcell import Workcell, marker_cells
+from shared.workcell import CellCamera, Workcell, marker_cells
 
 NOT_FOUND = "the table markers were not found"
 _THRESHOLD_WINDOW = 23  # the detector's widest adaptive threshold window (OpenCV's default)
@@ -39,10 +40,15 @@ class Bounds:
     """What a plausible homography looks like: the defaults lie above what `shifted` frames,
     which double every camera range, gave (250 random states a task: corner RMS at most 1.83
     px for box stacking, 0.85 for cloth; the view moved at most 39.5 px; `camera`: 1.54 and
-    19.5), far below what a marker moved on the table or a frame turned round gives."""
+    19.5; a box column's top 3.16 px of parallax at 64 px, `camera` 1.44, rope-box's boxes
+    0.35), far below what a marker moved on the table or a frame turned round gives."""
 
     max_error_px: float = 2.5  # RMS reprojection error of the corners, canonical pixels
     max_offset_px: float = 60.0  # how far the view's corners may lie from where they should
+    # where the workcell knows its camera (`Workcell.camera`) instead of max_offset_px: how far
+    # a point `relief_mm` above the table may lie from where the nominal camera shows it, in
+    # pixels of the model's view (at 64 px: 1 px is 4 of the canonical frame's)
+    max_parallax_px: float = 4.0
     min_contrast: float = 40.0  # white minus black of the markers' cells, levels of 255
 
 
@@ -57,6 +63,57 @@ class Registered:
     found: tuple[int, ...]  # the ids of the markers used
     gain: np.ndarray = field(default_factory=lambda: np.ones(3))
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    parallax_px: float = 0.0  # where the camera is known: see Parallax (model pixels)
+
+
+class Parallax:
+    """How far a point `relief_mm` above the table lies, in the registered view, from where the
+    nominal camera shows it: registration maps the table's plane exactly from any pose, and
+    what stands above it is seen along another line of sight, which meets the table elsewhere.
+    It depends only on where the camera's centre moved (a camera turned about its centre gives
+    none), found from the frame's homography and the camera's field of view."""
+
+    def __init__(self, workcell: Workcell, camera: CellCamera) -> None:
+        self.relief = workcell.relief_mm
+        self.fov = math.radians(camera.fov_deg)
+        self.nominal = np.asarray(camera.centre_mm, np.float64)
+        self.to_canonical = workcell.table_homography()  # table mm -> canonical pixels
+        n = workcell.frame
+        view = np.stack(np.meshgrid(np.linspace(0, n - 1, 9), np.linspace(0, n - 1, 9)), -1)
+        self.points = _apply(np.linalg.inv(self.to_canonical), view.reshape(-1, 2))  # table mm
+
+    def __call__(self, homography: np.ndarray, width: int, height: int) -> tuple[float, float]:
+        """(how far the camera's centre moved, mm; the largest parallax, canonical pixels) for
+        a frame of `width` x `height` registered by `homography` (frame -> canonical)."""
+        table_to_frame = np.linalg.inv(homography) @ self.to_canonical
+        centre = camera_centre(table_to_frame, self.fov, width, height)
+        moved = float(np.linalg.norm(centre - self.nominal))
+        if self.relief <= 0:
+            return moved, 0.0
+        seen = _apply(self.to_canonical, _on_table(centre, self.points, self.relief))
+        nominal = _apply(self.to_canonical, _on_table(self.nominal, self.points, self.relief))
+        return moved, float(np.linalg.norm(seen - nominal, axis=1).max())
+
+
+def camera_centre(table_to_frame: np.ndarray, fov: float, width: int, height: int) -> np.ndarray:
+    """The centre (table mm, z above the table) of a pinhole camera of vertical field of view
+    `fov` (radians; square pixels, the principal point at the frame's centre) whose frame sees
+    the table through `table_to_frame` (table mm -> frame pixels)."""
+    focal = height / 2 / math.tan(fov / 2)
+    intrinsics = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+    columns = np.linalg.solve(intrinsics, table_to_frame)  # [r1 r2 t], up to one scale
+    scale = 2 / (np.linalg.norm(columns[:, 0]) + np.linalg.norm(columns[:, 1]))
+    if columns[2, 2] < 0:  # the table lies in front of the camera
+        scale = -scale
+    r1, r2, t = (scale * columns[:, i] for i in range(3))
+    u, _, vt = np.linalg.svd(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    return -(u @ vt).T @ t
+
+
+def _on_table(centre: np.ndarray, points: np.ndarray, height: float) -> np.ndarray:
+    """Where the lines of sight from `centre` through the points `height` above the table
+    points (N, 2) meet the table."""
+    return centre[:2] + (points - centre[:2]) * (centre[2] / (centre[2] - height))
 
 
 class Registration:
@@ -87,6 +144,8 @@ class Registration:
             self._sides = {ident: bits.shape[0] for ident, bits in self._bits.items()}  # cells
             self._black = np.asarray(workcell.black, np.float64)
             self._white = np.asarray(workcell.white, np.float64)
+            if workcell.camera is not None:
+                self._parallax = Parallax(workcell, workcell.camera)
 
     def _detector(self) -> cv2.aruco.ArucoDetector:
         detector = getattr(self._local, "detector", None)
@@ -228,12 +287,23 @@ class Registration:
         ids = sorted(found)
         homography, error = self._fit(found)
         offset = self._offset(homography, frame.shape[1], frame.shape[0])
-        if not error <= b.max_error_px or not offset <= b.max_offset_px:
+        geometric = wc.camera is not None  # parallax bounds the pose, not how far it moved
+        if not error <= b.max_error_px or not (geometric or offset <= b.max_offset_px):
             raise RegistrationError(
                 f"{NOT_FOUND}: ids {ids} give an implausible homography: corner error "
                 f"{error:.2f} px (bound {b.max_error_px}), view moved {offset:.1f} px "
                 f"(bound {b.max_offset_px})"
             )
+        parallax = 0.0
+        if geometric:
+            moved, parallax = self._parallax(homography, frame.shape[1], frame.shape[0])
+            parallax *= self.size / wc.frame  # pixels of the model's view
+            if not parallax <= b.max_parallax_px:
+                raise RegistrationError(
+                    f"the camera stands {moved:.0f} mm from its place: what stands "
+                    f"{wc.relief_mm:g} mm above the table would lie {parallax:.2f} px from "
+                    f"where the model saw it (bound {b.max_parallax_px} px at {self.size} px)"
+                )
         canonical = cv2.warpPerspective(
             frame,
             homography,
@@ -246,7 +316,14 @@ class Registration:
             gain, shift = self._levels(frame, homography, ids)
             canonical = _map_levels(canonical, gain, shift)
         return Registered(
-            _resize(canonical, self.size), homography, error, offset, tuple(ids), gain, shift
+            _resize(canonical, self.size),
+            homography,
+            error,
+            offset,
+            tuple(ids),
+            gain,
+            shift,
+            parallax,
         )
 
     def _offset(self, homography: np.ndarray, width: int, height: int) -> float:

@@ -55,6 +55,23 @@ class Marker:
 
 
 @dataclass(frozen=True)
+class CellCamera:
+    """The cell camera as registration needs it to tell what a moved camera does to what stands
+    above the table: the vertical field of view of its whole frames (square pixels, the
+    principal point at the frame's centre) and its centre at the nominal pose, table millimetres
+    (x, y as the markers', z above the table)."""
+
+    fov_deg: float
+    centre_mm: tuple[float, float, float]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "fov_deg": round(self.fov_deg, 4),
+            "centre_mm": [round(v, 2) for v in self.centre_mm],
+        }
+
+
+@dataclass(frozen=True)
 class Workcell:
     """The markers of one task's table and the levels their cells take in the canonical view.
 
@@ -72,6 +89,11 @@ class Workcell:
     # view; registration maps each frame's measured levels onto these.
     black: tuple[float, float, float] = (0.0, 0.0, 0.0)
     white: tuple[float, float, float] = (255.0, 255.0, 255.0)
+    # With the camera known, registration bounds a moved camera by the parallax of what stands
+    # up to `relief_mm` above the table (0: a flat scene, any pose whose markers are seen);
+    # without it, by how far the view moved (`shared.registration.Bounds.max_offset_px`).
+    camera: CellCamera | None = None
+    relief_mm: float = 0.0
 
     @property
     def ids(self) -> list[int]:
@@ -90,6 +112,11 @@ class Workcell:
             "markers": [m.to_json() for m in self.markers],
             "black": [round(v, 2) for v in self.black],
             "white": [round(v, 2) for v in self.white],
+            **(
+                {}
+                if self.camera is None
+                else {"camera": self.camera.to_json(), "relief_mm": round(self.relief_mm, 2)}
+            ),
         }
 
     @classmethod
@@ -136,6 +163,8 @@ class Workcell:
             frame=int(frame),
             black=_triple(obj.get("black", [0, 0, 0]), f"{where}.black"),
             white=_triple(obj.get("white", [255, 255, 255]), f"{where}.white"),
+            camera=_camera(obj.get("camera"), f"{where}.camera"),
+            relief_mm=_number(obj.get("relief_mm", 0.0), f"{where}.relief_mm", low=0.0),
         )
 
     def table_corners_mm(self) -> np.ndarray:
@@ -247,10 +276,29 @@ def _apply(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
     return lifted[:, :2] / lifted[:, 2:3]
 
 
-def _number(value: Any, where: str) -> float:
+def _number(value: Any, where: str, low: float | None = None) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise WorkcellError(f"{where}: expected a finite number")
+    if low is not None and value < low:
+        raise WorkcellError(f"{where}: expected at least {low:g}, got {value:g}")
     return float(value)
+
+
+def _camera(value: Any, where: str) -> CellCamera | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise WorkcellError(f"{where}: expected an object with fov_deg and centre_mm, or null")
+    fov = _number(value.get("fov_deg"), f"{where}.fov_deg")
+    if not 1.0 <= fov <= 170.0:
+        raise WorkcellError(f"{where}.fov_deg: a field of view from 1 to 170 degrees")
+    centre = value.get("centre_mm")
+    if not isinstance(centre, list | tuple) or len(centre) != 3:
+        raise WorkcellError(f"{where}.centre_mm: expected [x, y, z]")
+    x, y, z = (_number(v, f"{where}.centre_mm") for v in centre)
+    if z <= 0:
+        raise WorkcellError(f"{where}.centre_mm: the camera stands above the table (z > 0)")
+    return CellCamera(fov_deg=fov, centre_mm=(x, y, z))
 
 
 def _pair(value: Any, where: str) -> tuple[float, float]:

@@ -17,7 +17,7 @@ import numpy as np
 from services.sim.rendering import OffscreenCamera, mujoco
 from shared.registration import Registration, RegistrationError, to_table_frame
 from shared.tasks.base import World
-from shared.workcell import Marker, Workcell, marker_cells
+from shared.workcell import CellCamera, Marker, Workcell, marker_cells
 
 FRAME_SCALE = 2.2  # the frame's field of view over the canonical one (tangent of the half-angle)
 FRAME_SIZE = 400  # pixels: 0.71 frame pixels per canonical pixel at 256
@@ -240,7 +240,19 @@ def layout(world: World) -> Workcell:
         min_markers=world.min_markers,
         black=tuple(round(float(v), 2) for v in black),  # type: ignore[arg-type]
         white=tuple(round(float(v), 2) for v in white),  # type: ignore[arg-type]
+        camera=cell_camera(world),
+        relief_mm=round(world.relief_m * 1000, 2),
     )
+
+
+def cell_camera(world: World) -> CellCamera:
+    """The cell camera of a world: its frames' field of view (FRAME_SCALE times the canonical
+    camera's, in the tangent of the half-angle) and its nominal centre, table millimetres (the
+    table's top is the world's z = 0)."""
+    nominal = Pinhole.of(world.model, world.data, world.camera.camera)
+    half = math.atan(FRAME_SCALE * nominal.frame / 2 / nominal.focal)
+    x, y, z = (round(float(v) * 1000, 2) for v in nominal.position)
+    return CellCamera(fov_deg=round(math.degrees(2 * half), 4), centre_mm=(x, y, z))
 
 
 def true_homography(moved: Pinhole, nominal: Pinhole) -> np.ndarray:

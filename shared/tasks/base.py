@@ -243,6 +243,9 @@ class World(ABC, Generic[State, Action]):
     # inside the frame at `shifted` camera draws; and how many registration needs at least.
     marker_places: ClassVar[tuple[tuple[int, tuple[float, float], float], ...]] = ()
     min_markers: ClassVar[int] = 3
+    # The highest anything of the scene stands above the table (m): a moved camera is bounded by
+    # the parallax it gives there (`Workcell.relief_mm`); 0 for what lies flat (a cloth, a shirt).
+    relief_m: float = 0.0
 
     @abstractmethod
     def reset(self, state: State, rng: np.random.Generator) -> State:

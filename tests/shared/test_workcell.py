@@ -188,3 +188,20 @@ def test_check_registers_one_frame_and_names_what_it_found(tmp_path, capsys):
     Image.fromarray(frame).save(tmp_path / "covered.png")
     assert main([*argv, str(tmp_path / "covered.png"), "--out", str(out)]) == 2
     assert "table markers were not found: 2 of 4 seen" in capsys.readouterr().err
+
+
+def test_a_cell_camera_and_relief_round_trip_and_bad_ones_are_named():
+    declared = get_task("box_stacking").workcell
+    assert declared.camera is not None and declared.relief_mm == 180.0  # a column of three
+    assert Workcell.from_json(declared.to_json()) == declared
+    plain = rectangle_layout(TABLE, 80.0)
+    assert plain.camera is None and "camera" not in plain.to_json()  # bounded as before
+    section = {**declared.to_json(), "camera": {"fov_deg": 200, "centre_mm": [0, 0, 500]}}
+    with pytest.raises(WorkcellError, match=r"markers\.camera\.fov_deg: .* 1 to 170 degrees"):
+        Workcell.from_json(section)
+    section["camera"] = {"fov_deg": 60, "centre_mm": [0, 0, -5]}
+    with pytest.raises(WorkcellError, match=r"markers\.camera\.centre_mm: .*above the table"):
+        Workcell.from_json(section)
+    section = {**declared.to_json(), "relief_mm": -1}
+    with pytest.raises(WorkcellError, match=r"markers\.relief_mm: expected at least 0"):
+        Workcell.from_json(section)

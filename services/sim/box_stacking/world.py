@@ -49,6 +49,7 @@ class BoxStackingWorld(CameraWorld, World[Stacks, Move]):
         self.task = task or BoxStacking()
         self.image_size = image_size
         self.geometry = geometry or SceneGeometry()
+        self.relief_m = self.task.config.levels * self.geometry.box_size  # a full column
         cfg = self.task.config
         mjcf = build_mjcf(cfg, self.geometry, image_size, box_looks)
         mjcf = with_markers(mjcf, self.task.workcell)

@@ -73,6 +73,7 @@ class RopeBoxWorld(CameraWorld, World[RopeBoxState, RopeBoxAction]):
         self.task = task or RopeBox()
         self.image_size = image_size
         self.geometry = g = geometry or RopeBoxGeometry()
+        self.relief_m = g.box_size  # the boxes; the pillars and a lifted rope stand lower
         xml = build_mjcf(self.task.config, g, image_size)
         self.model = mujoco.MjModel.from_xml_string(with_markers(xml, self.task.workcell))
         self.data = mujoco.MjData(self.model)

@@ -1,5 +1,6 @@
 """The workcell's markers in every world, and registration of the cell's camera frames."""
 
+import math
 import re
 
 import cv2
@@ -10,10 +11,12 @@ from services.sim.appearance import AppearanceWorld
 from services.sim.workcell import Observer, Pinhole, layout, true_homography
 from services.sim.worlds import make_world
 from shared.registration import (
+    Bounds,
     Registration,
     RegistrationError,
     _apply,
     _map_levels,
+    camera_centre,
     to_table_frame,
 )
 from shared.tasks import get_task
@@ -293,3 +296,60 @@ def test_the_workcell_s_pixels_in_mm_are_where_the_world_acts(task):
         for row, col in [(0, 0), (128, 128), (255, 0), (30, 200), (255, 255)]:
             truth = 1000 * world.to_table(Pixel(row, col))[:2]
             assert workcell.pixel_to_mm(row, col) == pytest.approx(tuple(truth), abs=0.3)
+
+
+def _posed(world, roll_deg: float = 0.0, lift: float = 0.0) -> None:
+    """The world's camera turned about its optical axis and raised by a share of its height."""
+    import mujoco
+
+    from services.sim.appearance import _turn_quat
+
+    model, camera = world.model, world.model.camera(world.camera.camera).id
+    model.cam_pos[camera][2] *= 1 + lift
+    quat = np.zeros(4)
+    mujoco.mju_mulQuat(
+        quat, model.cam_quat[camera].copy(), _turn_quat(math.radians(roll_deg), 0, 0)
+    )
+    model.cam_quat[camera] = quat
+    mujoco.mj_forward(model, world.data)
+
+
+def test_a_flat_task_registers_a_camera_turned_20_degrees_and_box_stacking_refuses_a_raised_one():
+    """A homography of the table undoes any pose for what lies flat on it; what stands above it
+    (a box column) is seen along other lines of sight when the camera's centre moved, and its
+    parallax bounds the pose instead of how far the view moved."""
+    with make_world("tshirt_folding", 64) as world:
+        state = world.task.all_states()[9]
+        world.reset(state, np.random.default_rng(0))
+        nominal = Registration(world.task.workcell, 64).register(world.frame())
+        _posed(world, roll_deg=20)
+        world.reset(state, np.random.default_rng(0))
+        turned = Registration(world.task.workcell, 64).register(world.frame())
+    assert turned.offset_px > Bounds().max_offset_px  # refused by how far the view moved, once
+    assert turned.parallax_px == 0.0
+    assert np.abs(turned.image.astype(int) - nominal.image).mean() < 4  # levels of 255
+    with make_world("box_stacking", 64) as world:
+        world.reset(world.task.all_states()[40], np.random.default_rng(0))
+        _posed(world, roll_deg=10)  # turned about its centre: no parallax
+        assert Registration(world.task.workcell, 64).register(world.frame()).parallax_px < 0.5
+        _posed(world, lift=0.2)
+        world.reset(world.task.all_states()[40], np.random.default_rng(0))
+        frame = world.frame()
+    with pytest.raises(RegistrationError, match=r"the camera stands \d+ mm from its place: what "
+                       r"stands 180 mm above the table would lie [\d.]+ px"):  # fmt: skip
+        Registration(world.task.workcell, 64).register(frame)
+
+
+@pytest.mark.parametrize("look", ["camera", "shifted"])
+def test_the_camera_s_centre_is_found_from_a_frame_and_its_field_of_view(look):
+    with make_world("box_stacking", 64, appearance=look) as world:
+        registration = Registration(world.task.workcell, 64)
+        camera = world.task.workcell.camera
+        rng = np.random.default_rng(8)
+        for _ in range(6):
+            world.reset(world.task.sample_state(rng), rng)
+            frame = world.frame()
+            homography = registration.register(frame).homography
+            table_to_frame = np.linalg.inv(homography) @ world.task.workcell.table_homography()
+            centre = camera_centre(table_to_frame, math.radians(camera.fov_deg), 400, 400)
+            assert np.linalg.norm(centre - 1000 * world.pinhole().position) < 10  # mm
