@@ -2,12 +2,14 @@
 
 Usage:
     .venv/bin/python benchmarks/bench_rotation.py [--model models/box_stacking]
-        [--turns 0 1.5 3 5 10] [--states 400] [--pairs 1000] [--seed 17]
+        [--turns 0 1.5 3 5 10] [--heights 0.1 0.2] [--states 400] [--pairs 1000] [--seed 17]
         [--json runs/rotation.json] [--figure docs/images/rotation_box.png]
 
 For each turn (degrees of the camera's roll, pitch and yaw, each drawn within +-turn; 1.5 is
 the `camera` level's, 5 robosuite's default) every other part of the `camera` look stays at
-its level. `--states` random states are each reset under a fresh draw and seen two ways:
+its level; with `--heights`, also rows with the camera's height above the table drawn within
++-that share (0.2: +-20%), turns at the `camera` level. `--states` random states are each
+reset under a fresh draw and seen two ways:
 - without registration: the moved camera's own view at the model's size, as a camera bolted
   where the canonical one was would give it;
 - with registration: the cell's whole frame, registered to the table frame from the markers.
@@ -43,22 +45,26 @@ from shared.appearance import APPEARANCES, Appearance
 from shared.registration import RegistrationError
 
 
-def look_at(camera_turn_deg: float) -> Appearance:
+def look_at(camera_turn_deg: float, camera_height: float = 0.0) -> Appearance:
     camera = APPEARANCES["camera"]
     assert camera.episode is not None
-    episode = replace(camera.episode, camera_turn_deg=camera_turn_deg)
-    return replace(camera, name=f"turn {camera_turn_deg:g}", episode=episode)
+    episode = replace(camera.episode, camera_turn_deg=camera_turn_deg, camera_height=camera_height)
+    name = f"turn {camera_turn_deg:g}" + (
+        f", height +-{camera_height:.0%}" if camera_height else ""
+    )
+    return replace(camera, name=name, episode=episode)
 
 
 def images_at(
-    task: str, size: int, turn: float, states: int, seed: int
+    task: str, size: int, turn: float, states: int, seed: int, height: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """States, unregistered views, registered frames and whether each frame registered."""
     world = make_world(task, size, appearance="camera")
     assert isinstance(world, AppearanceWorld)
-    world.use(look_at(turn))
+    world.use(look_at(turn, height))
     observer = Observer(world)
-    rng = np.random.default_rng([seed, int(turn * 100)])
+    heights = [int(height * 100)] if height else []  # the turns' draws stay as they were
+    rng = np.random.default_rng([seed, int(turn * 100), *heights])
     rows, plain, registered, found = [], [], [], []
     try:
         for _ in tqdm(range(states), desc=f"turn {turn:g}", leave=False):
@@ -104,6 +110,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=Path("models/box_stacking"))
     parser.add_argument("--turns", type=float, nargs="+", default=[0, 1.5, 3, 5, 10])
+    parser.add_argument(
+        "--heights",
+        type=float,
+        nargs="*",
+        default=[],
+        help="also rows with the camera's height drawn within +-this share (turns at `camera`)",
+    )
     parser.add_argument("--states", type=int, default=400)
     parser.add_argument("--pairs", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=17)
@@ -113,13 +126,18 @@ def main() -> int:
     _, config, _, _ = load_model(args.model)
     task, size = config["dataset"]["task"], int(config["model"]["image_size"])
     results = []
-    for turn in args.turns:
+    camera_turn = APPEARANCES["camera"].episode.camera_turn_deg  # type: ignore[union-attr]
+    rows = [(turn, 0.0) for turn in args.turns] + [(camera_turn, h) for h in args.heights]
+    for turn, height in rows:
         started = time.perf_counter()
-        states, plain, registered, found = images_at(task, size, turn, args.states, args.seed)
+        states, plain, registered, found = images_at(
+            task, size, turn, args.states, args.seed, height
+        )
         everything = np.ones(len(plain), bool)
         results.append(
             {
                 "turn_deg": turn,
+                "height": height,
                 "registered_frames": 100.0 * float(found.mean()),
                 "without": table1(args.model, states, plain, everything, args.pairs, args.seed),
                 "with": table1(args.model, states, registered, found, args.pairs, args.seed),
@@ -129,15 +147,19 @@ def main() -> int:
     print(
         f"model {args.model} ({task}), {args.states} states, {args.pairs} pairs, seed {args.seed}"
     )
-    print("| turn (deg) | frames registered | without: All / Any / Trans, known | "
+    print("| turn (deg) | height | frames registered | without: All / Any / Trans, known | "
           "with: All / Any / Trans, known |")  # fmt: skip
-    print("| --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- |")
     for r in results:
         cells = [
             f"{r[k]['all']:.1f} / {r[k]['any']:.1f} / {r[k]['trans']:.1f}, {r[k]['known']:.1f}%"
             for k in ("without", "with")
         ]
-        print(f"| {r['turn_deg']:g} | {r['registered_frames']:.1f}% | {cells[0]} | {cells[1]} |")
+        height = f"+-{r['height']:.0%}" if r["height"] else "-"
+        print(
+            f"| {r['turn_deg']:g} | {height} | {r['registered_frames']:.1f}% | {cells[0]} "
+            f"| {cells[1]} |"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"args": vars(args) | {"model": str(args.model),
@@ -154,6 +176,7 @@ def plot(results: list[dict], path: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    results = [r for r in results if not r["height"]]  # the turns
     turns = [r["turn_deg"] for r in results]
     fig, ax = plt.subplots(figsize=(5.5, 3.4), dpi=120)
     for key, style in (("with", "o-"), ("without", "s--")):

@@ -36,6 +36,7 @@ class EpisodeRanges:
     ambient: float = 0.20  # ambient light x U(1 - r, 1 + r)
     camera_shift_m: float = 0.005  # camera position, each axis
     camera_turn_deg: float = 1.5  # camera roll, pitch and yaw, each
+    camera_height: float = 0.0  # camera height above the table x U(1 - r, 1 + r); 0: not drawn
     table_colour: float = 0.05  # table colour x U(1 - r, 1 + r), each channel
     table_texture: float = 0.04  # amplitude of a faint random texture on the table
 
@@ -75,6 +76,7 @@ class EpisodeSample:
     table_gain: tuple[float, float, float]
     table_texture: float  # amplitude
     texture_seed: int  # seeds the texture's pattern
+    camera_lift: float = 0.0  # share of the camera's height above the table added to it
 
 
 @dataclass(frozen=True)
@@ -130,6 +132,8 @@ class Appearance:
             table_gain=_triple(_gain(rng, r.table_colour, 3)),
             table_texture=r.table_texture,
             texture_seed=int(rng.integers(2**63)),
+            # drawn last, and only where its range is set: the other draws stay as they were
+            camera_lift=float(_uniform(rng, r.camera_height)) if r.camera_height else 0.0,
         )
 
     def draw_image(self, rng: np.random.Generator) -> ImageSample | None:

@@ -174,6 +174,7 @@ class SceneModder:
         m.light_ambient[:] *= s.ambient_gain
         h.diffuse = np.asarray(h.diffuse) * s.light_gain
         h.ambient = np.asarray(h.ambient) * s.ambient_gain
+        m.cam_pos[self._cam][2] *= 1 + s.camera_lift  # the table's top is z = 0
         m.cam_pos[self._cam] += s.camera_shift
         quat = np.zeros(4)
         mujoco.mju_mulQuat(quat, m.cam_quat[self._cam].copy(), _turn_quat(*s.camera_turn))
