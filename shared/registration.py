@@ -289,10 +289,10 @@ class Registration:
         offset = self._offset(homography, frame.shape[1], frame.shape[0])
         geometric = wc.camera is not None  # parallax bounds the pose, not how far it moved
         if not error <= b.max_error_px or not (geometric or offset <= b.max_offset_px):
+            moved = "" if geometric else f", view moved {offset:.1f} px (bound {b.max_offset_px})"
             raise RegistrationError(
                 f"{NOT_FOUND}: ids {ids} give an implausible homography: corner error "
-                f"{error:.2f} px (bound {b.max_error_px}), view moved {offset:.1f} px "
-                f"(bound {b.max_offset_px})"
+                f"{error:.2f} px (bound {b.max_error_px}){moved}"
             )
         parallax = 0.0
         if geometric:
