@@ -99,8 +99,10 @@ def cmd_eval_system(args: argparse.Namespace) -> int:
             max_steps=args.max_steps,
             judge=judge,
             record=record,
+            head_camera=args.head_camera,
         )
     result["appearance"] = appearance
+    result["head_camera"] = args.head_camera
     if not args.json:
         for key, value in result.items():
             print(f"{key:>20}: {value}")
@@ -160,6 +162,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--experience",
         type=Path,
         help="record every executed action here, for lsr roadmap grow",
+    )
+    system.add_argument(
+        "--head-camera",
+        action="store_true",
+        help="the camera's pose drawn anew for every image of an episode (a robot's head "
+        "camera), within the look's ranges",
     )
     system.add_argument("--json", action="store_true")
     system.set_defaults(handler=cmd_eval_system)

@@ -19,6 +19,7 @@ import hashlib
 import io
 import json
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -289,11 +290,22 @@ class AppearanceWorld(World):
             return self.world.render()
         return self._look(None)
 
-    def relook(self) -> None:
+    def relook(self, camera_only: bool = False) -> None:
         """A fresh draw of the look (lights, table, camera) for the images from now on: the
-        same state seen again later, after the light or the camera changed."""
-        if not self.appearance.is_clean:
-            self._episode = self.appearance.draw_episode(self._rng)
+        same state seen again later, after the light or the camera changed; `camera_only`:
+        only the camera's pose drawn again, the light and the table as they were (a camera
+        on a robot's head, never twice in one place)."""
+        if self.appearance.is_clean:
+            return
+        drawn = self.appearance.draw_episode(self._rng)
+        if camera_only and drawn is not None and self._episode is not None:
+            drawn = replace(
+                self._episode,
+                camera_shift=drawn.camera_shift,
+                camera_turn=drawn.camera_turn,
+                camera_lift=drawn.camera_lift,
+            )
+        self._episode = drawn
 
     def frame(self) -> np.ndarray:
         """The cell's camera frame at this episode's look (the camera's pose draw moves the

@@ -291,11 +291,13 @@ def evaluate_system(
     judge: PlanJudge | None = None,
     record: Recorder | None = None,
     max_actions: int | None = None,
+    head_camera: bool = False,
 ) -> dict[str, Any]:
     """Random start/goal state pairs run closed loop (goals that look unlike the start);
     success = the simulator reaches a state that shows the goal's view.
     `max_actions`: a budget of actions tried (legal or refused); the task that reaches it is
-    cut short and no further task starts ("pairs" says how many ran).
+    cut short and no further task starts ("pairs" says how many ran). `head_camera`: the
+    camera's pose drawn anew for every image of an episode (a robot's head camera).
 
     With a `judge`, also the paper's Table III: correct single transitions (the state after an
     action tried looks like the plan's next node; a refused one never does; and beside it,
@@ -321,7 +323,10 @@ def evaluate_system(
         goal = task.sample_state(rng)
         while task.view(goal) == task.view(start):
             goal = task.sample_state(rng)
-        episode = run_episode(planner, world, start, goal, rng, max_steps=steps, record=record)
+        observer = Observer(world, moving=head_camera)  # as a cell's: its own registration
+        episode = run_episode(
+            planner, world, start, goal, rng, max_steps=steps, record=record, observer=observer
+        )
         executed += len(episode.actions)
         illegal += episode.illegal_actions
         reasons[episode.reason] = reasons.get(episode.reason, 0) + 1

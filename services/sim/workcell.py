@@ -273,11 +273,13 @@ class Observer:
     frame would only approximate); at other levels, the cell's frame registered to the table
     frame. `see()` raises RegistrationError when the frame's markers are not found.
     `register` False gives the cell camera's frames as they are, at every level, for a
-    client whose server registers them (a robot over the public API)."""
+    client whose server registers them (a robot over the public API). `moving`: a camera on a
+    robot's head, its pose drawn anew (`relook(camera_only=True)`) before every look."""
 
-    def __init__(self, world: World, register: bool = True) -> None:
+    def __init__(self, world: World, register: bool = True, moving: bool = False) -> None:
         self.world = world
         self.register = register
+        self.moving = moving
         workcell = world.task.workcell
         appearance = getattr(world, "appearance", None)  # an AppearanceWorld's level
         self.registration = None if workcell is None else Registration(workcell, world.image_size)
@@ -293,6 +295,8 @@ class Observer:
     def look(self) -> tuple[np.ndarray, str | None]:
         """What the camera shows in the table frame and None, or, when its markers are not
         found, the frame only resized (to show, never to plan from) and why."""
+        if self.moving and hasattr(self.world, "relook"):
+            self.world.relook(camera_only=True)
         if not self.frames:
             return self.world.render(), None
         if not self.register:

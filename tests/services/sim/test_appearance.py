@@ -214,3 +214,24 @@ def test_a_world_without_mujoco_is_refused_by_name():
 
     with pytest.raises(TypeError, match=r"Blind: appearance needs a MjModel as \.model"):
         SceneModder(Blind())
+
+
+def test_a_head_camera_moves_before_every_look_and_the_light_stays(world):
+    """`Observer(moving=True)`: the camera's pose drawn anew for every image of an episode,
+    the light and the table as the episode drew them."""
+    from services.sim.workcell import Observer
+
+    world = AppearanceWorld(world, "camera")
+    world.reset(box_state(world), np.random.default_rng(4))
+    light = world._episode.light_gain
+    observer = Observer(world, moving=True)
+    poses = []
+    for _ in range(3):
+        observer.see()  # registered, as every image a model is given
+        poses.append(world.pinhole().position.copy())
+        assert world._episode.light_gain == light
+    assert np.linalg.norm(poses[0] - poses[1]) > 1e-4 and np.linalg.norm(poses[1] - poses[2]) > 1e-4
+    still = Observer(world)
+    pose = world.pinhole().position.copy()
+    still.see()
+    assert np.array_equal(world.pinhole().position, pose)  # a cell's camera stays
