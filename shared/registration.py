@@ -81,6 +81,10 @@ class Parallax:
         n = workcell.frame
         view = np.stack(np.meshgrid(np.linspace(0, n - 1, 9), np.linspace(0, n - 1, 9)), -1)
         self.points = _apply(np.linalg.inv(self.to_canonical), view.reshape(-1, 2))  # table mm
+        # where the nominal camera shows those points `relief` above the table: fixed
+        self.seen_nominally = _apply(
+            self.to_canonical, _on_table(self.nominal, self.points, self.relief)
+        )
 
     def __call__(self, homography: np.ndarray, width: int, height: int) -> tuple[float, float]:
         """(how far the camera's centre moved, mm; the largest parallax, canonical pixels) for
@@ -91,8 +95,7 @@ class Parallax:
         if self.relief <= 0:
             return moved, 0.0
         seen = _apply(self.to_canonical, _on_table(centre, self.points, self.relief))
-        nominal = _apply(self.to_canonical, _on_table(self.nominal, self.points, self.relief))
-        return moved, float(np.linalg.norm(seen - nominal, axis=1).max())
+        return moved, float(np.linalg.norm(seen - self.seen_nominally, axis=1).max())
 
 
 def camera_centre(table_to_frame: np.ndarray, fov: float, width: int, height: int) -> np.ndarray:
@@ -289,10 +292,10 @@ class Registration:
         offset = self._offset(homography, frame.shape[1], frame.shape[0])
         geometric = wc.camera is not None  # parallax bounds the pose, not how far it moved
         if not error <= b.max_error_px or not (geometric or offset <= b.max_offset_px):
-            moved = "" if geometric else f", view moved {offset:.1f} px (bound {b.max_offset_px})"
+            view = "" if geometric else f", view moved {offset:.1f} px (bound {b.max_offset_px})"
             raise RegistrationError(
                 f"{NOT_FOUND}: ids {ids} give an implausible homography: corner error "
-                f"{error:.2f} px (bound {b.max_error_px}){moved}"
+                f"{error:.2f} px (bound {b.max_error_px}){view}"
             )
         parallax = 0.0
         if geometric:
