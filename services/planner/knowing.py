@@ -43,9 +43,10 @@ from shared.plans import Match, UnknownImageError, refused_end
 
 FILE = "match.json"
 FORMAT = "lsr-match"
-VERSION = 3
+VERSION = 4  # 4: the whole-image error after fitting each channel's gain
 QUANTILE = 0.999
 FACTOR = 2.0
+GAIN = (0.5, 2.0)  # a channel's fitted gain: what a camera's exposure and white balance do
 PATCHES = 4  # a patch is this fraction of the frame's side, moved by half a patch
 BATCH = 250  # images a pass: small enough to stay in the cache
 _THREADS = threading.Lock()  # look_many switches torch's thread count
@@ -136,11 +137,22 @@ def look_many(vae: VAE, *image_sets: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def _errors(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:
-    """(B, 2): whole-image and worst-patch mean squared errors of uint8 (B, H, W, 3) drawings."""
-    gaps = ((drawn.float() - images.float()) / 255.0) ** 2
+    """(B, 2): whole-image and worst-patch mean squared errors of uint8 (B, H, W, 3) drawings.
+
+    The whole-image error is taken after scaling each channel of the drawing by the gain that
+    fits it best to the image (within GAIN): the decoder draws the training looks' average
+    exposure and white balance, and a scene lit 20% brighter is the same scene. Without it
+    the brighter third of `shifted` box images were refused by this term alone (2.9%,
+    fitted gains 1.1-1.27), while their latents lay where their states' do."""
+    drawn, images = drawn.float() / 255.0, images.float() / 255.0
+    gains = (drawn * images).sum((1, 2), keepdim=True) / (drawn * drawn).sum(
+        (1, 2), keepdim=True
+    ).clamp_min(1e-6)
+    whole = (drawn * gains.clamp(*GAIN) - images).pow(2).flatten(1).mean(1)
+    gaps = (drawn - images).pow(2)
     patch = max(1, images.shape[1] // PATCHES)
     pooled = F.avg_pool2d(gaps.mean(-1)[:, None], patch, stride=max(1, patch // 2))
-    return torch.stack([gaps.flatten(1).mean(1), pooled.flatten(1).max(1).values], 1).numpy()
+    return torch.stack([whole, pooled.flatten(1).max(1).values], 1).numpy()
 
 
 def distances(roadmap: Roadmap, latents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

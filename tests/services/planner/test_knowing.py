@@ -3,6 +3,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from services.encoder.model import VAE, VAEConfig
 from services.planner.knowing import (
@@ -10,6 +11,7 @@ from services.planner.knowing import (
     FACTOR,
     MIN_MEMBERS,
     MatchError,
+    _errors,
     calibrate,
     check_ends,
     connect,
@@ -235,3 +237,19 @@ def test_look_many_gives_what_look_gives_and_leaves_torch_threads_as_they_were()
     np.testing.assert_allclose(z, z0, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(errors, errors0, rtol=1e-3, atol=1e-7)
     assert look_many(vae)[0].shape == (0, 4)
+
+
+def test_a_brighter_or_tinted_image_is_redrawn_as_well_but_a_dark_one_is_not():
+    """The whole-image error forgives a camera's exposure and white balance (a gain per
+    channel within GAIN), never a change of content nor a frame five times too dark."""
+    rng = np.random.default_rng(0)
+    drawn = torch.from_numpy(rng.integers(40, 200, (3, 16, 16, 3), dtype=np.uint8))
+    tinted = (drawn.float() * torch.tensor([1.2, 1.1, 0.9])).round().to(torch.uint8)
+    dark = (drawn.float() * 0.2).round().to(torch.uint8)
+    other = torch.from_numpy(rng.integers(40, 200, (3, 16, 16, 3), dtype=np.uint8))
+    images = torch.cat([drawn, tinted, dark, other])
+    whole = _errors(drawn.repeat(4, 1, 1, 1), images)[:, 0].reshape(4, 3)
+    assert whole[0].max() == 0
+    assert whole[1].max() < 1e-5  # rounding only
+    assert whole[2].min() > 0.01  # the gain stops at GAIN[0]
+    assert whole[3].min() > 0.01
