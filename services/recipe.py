@@ -62,6 +62,7 @@ class Recipe:
     apn_steps: int | None = None
     apn_restarts: int = APN_RESTARTS
     vae: Path | None = None  # a VAE trained on this dataset before: the roadmap and APN only
+    augment: bool = False  # the VAE's encoder sees each image under a drawn look (issue 50)
 
 
 class CollapsedVAEError(ValueError):
@@ -204,7 +205,12 @@ def choose(
         source = "the paper's for the task" if dm is None else "the dataset's task.json settings"
         why.append(f"d_m {TrainConfig(metric=recipe.metric, dm=dm).d_m(data.task)}: {source}")
     vae = TrainConfig(
-        metric=recipe.metric, dm=dm, steps=int(steps), seed=recipe.seed, device=recipe.device
+        metric=recipe.metric,
+        dm=dm,
+        steps=int(steps),
+        seed=recipe.seed,
+        device=recipe.device,
+        augment=recipe.augment,
     )
     metric = "l1" if recipe.metric == "none" else recipe.metric
     roadmap = choices.roadmap(metric, recipe.eps_rule, recipe.w_eps, recipe.min_samples)

@@ -45,6 +45,7 @@ def cmd_train_vae(args: argparse.Namespace) -> int:
         beta_max=args.beta_max,
         clip_grad_norm=args.clip_grad_norm,
         action_on=args.action_on,
+        augment=args.augment,
         seed=args.seed,
         threads=args.threads,
         device=args.device,
@@ -103,6 +104,7 @@ def cmd_train_model(args: argparse.Namespace) -> int:
         apn_steps=args.apn_steps,
         apn_restarts=args.apn_restarts or APN_RESTARTS,
         vae=args.vae,
+        augment=args.augment,
     )
     figures = train_model(args.data, args.out, recipe, overwrite=args.overwrite)
     print(
@@ -143,6 +145,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     research.add_argument("--min-samples", type=int)
     research.add_argument("--apn-steps", type=int)
     research.add_argument("--apn-restarts", type=int, help="default 5")
+    research.add_argument(
+        "--augment",
+        action="store_true",
+        help="the VAE sees each image under a drawn look",
+    )
     model.set_defaults(handler=cmd_train_model)
 
     vae = train.add_parser("vae", help="train the action-VAE (metric none = baseline VAE-b)")
@@ -179,6 +186,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="sample",
         choices=["sample", "mean"],
         help="latents the action term sees: reparameterised samples or means",
+    )
+    vae.add_argument(
+        "--augment", action="store_true", help="the encoder sees each image under a drawn look"
     )
     vae.add_argument("--seed", type=int, default=0)
     vae.add_argument("--threads", type=int, default=2)

@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from tqdm import tqdm
 
 from services.encoder.checkpoint import encode_images, load_vae, save_vae
@@ -59,6 +60,9 @@ class TrainConfig:
     # The reference applies the action term to reparameterised samples. With a collapsed
     # posterior, sample noise alone can exceed d_m (L2: ~11 in 64-D), so "mean" is offered too.
     action_on: Literal["sample", "mean"] = "sample"
+    # The encoder sees each image under a freshly drawn look (`augment`) and the decoder is
+    # asked for the recorded one, so that a state's looks land together (issue 50).
+    augment: bool = False
 
     def __post_init__(self) -> None:
         if self.metric not in ("l1", "l2", "inf", "none"):
@@ -123,13 +127,44 @@ def schedules(cfg: TrainConfig, progress: float) -> tuple[float, float]:
 
 
 def vae_terms(
-    model: VAE, x: torch.Tensor
+    model: VAE, x: torch.Tensor, target: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-image summed squared error, KL to N(0, I), the reparameterised sample and the mean."""
+    """Per-image summed squared error (against `target`, else `x`), KL to N(0, I), the
+    reparameterised sample and the mean."""
     recon, mu, logvar, z = model(x)
-    sse = (recon - x).pow(2).flatten(1).sum(1)
+    sse = (recon - (x if target is None else target)).pow(2).flatten(1).sum(1)
     kl = 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).sum(1)
     return sse, kl, z, mu
+
+
+# A drawn look, as a cell drifts (shared/appearance.py's `camera` ranges, doubled and more):
+EXPOSURE = 0.25  # the whole image x U(1 - r, 1 + r)
+BALANCE = 0.1  # each channel x U(1 - r, 1 + r)
+GRADIENT = 0.15  # a light from one side: the gain runs from 1 - g to 1 + g across the image
+NOISE = 0.02  # Gaussian noise, sigma up to this (full scale)
+SHIFT = 2  # pixels each way, edges repeated: what registration leaves
+
+
+def augment(x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """(B, 3, H, W) images in [0, 1] under a drawn look each: exposure, white balance, a
+    light's gradient, sensor noise and a small shift (as DrQ and RAD augment for control)."""
+    b, _, h, w = x.shape
+
+    def draw(*shape: int) -> torch.Tensor:  # U(-1, 1), on the CPU generator, then x's device
+        return (torch.rand(*shape, generator=generator) * 2 - 1).to(x.device)
+
+    gain = (1 + EXPOSURE * draw(b, 1, 1, 1)) * (1 + BALANCE * draw(b, 3, 1, 1))
+    angle = math.pi * draw(b, 1, 1, 1)
+    ys = torch.linspace(-1, 1, h, device=x.device)[:, None]
+    xs = torch.linspace(-1, 1, w, device=x.device)[None, :]
+    ramp = (torch.cos(angle) * xs + torch.sin(angle) * ys).clamp(-1, 1)
+    gain = gain * (1 + GRADIENT * draw(b, 1, 1, 1).abs() * ramp)
+    sigma = NOISE * draw(b, 1, 1, 1).abs()
+    noise = torch.randn(x.shape, generator=generator).to(x.device) * sigma
+    looked = F.pad(x * gain + noise, (SHIFT,) * 4, mode="replicate")
+    dx, dy = (torch.randint(0, 2 * SHIFT + 1, (b,), generator=generator) for _ in range(2))
+    shifted = [looked[i, :, dy[i] : dy[i] + h, dx[i] : dx[i] + w] for i in range(b)]
+    return torch.stack(shifted).clamp(0, 1)
 
 
 def latent_gap(mu1: np.ndarray, mu2: np.ndarray, a: np.ndarray, metric: str) -> dict[str, float]:
@@ -181,6 +216,7 @@ def train_vae(
     drop_step = round(cfg.lr_drop * total_steps)
     monitor = np.random.default_rng(cfg.seed).permutation(n)[: cfg.monitor_pairs]
     batches = minibatches(n, cfg.batch_size, torch.Generator().manual_seed(cfg.seed))
+    looks = torch.Generator().manual_seed(cfg.seed + 1)  # augment's draws
     log_path = out_dir / "log.jsonl"
     log_path.write_text("")
     started = time.perf_counter()
@@ -199,7 +235,10 @@ def train_vae(
         b = len(idx)
         beta, gamma = schedules(cfg, step / total_steps)
         x = to_tensor(torch.cat([images1[idx], images2[idx]]).to(device))
-        sse, kl, z, mu = vae_terms(model, x.contiguous(memory_format=torch.channels_last))
+        seen_x = augment(x, looks) if cfg.augment else x
+        sse, kl, z, mu = vae_terms(
+            model, seen_x.contiguous(memory_format=torch.channels_last), target=x
+        )
         if cfg.action_on == "mean":
             z = mu
         recon, kl_mean = sse.mean(), kl.mean()

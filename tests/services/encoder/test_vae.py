@@ -8,8 +8,10 @@ from services.encoder.checkpoint import decode_latents, encode_images, load_vae
 from services.encoder.model import VAE, VAEConfig
 from services.encoder.train import (
     DEFAULT_STEPS,
+    SHIFT,
     TrainConfig,
     action_term,
+    augment,
     latent_distance,
     schedules,
     train_vae,
@@ -117,6 +119,32 @@ def test_action_term_on_means(tiny_data, tmp_path):
     record = train_vae(tiny_data, tmp_path / "m", cfg, progress=False)
     assert record["action"] > 0
     assert load_vae(tmp_path / "m")[1]["train"]["action_on"] == "mean"
+
+
+def test_augment_draws_a_look_per_image_seeded_and_in_range():
+    x = torch.full((6, 3, 16, 16), 0.5)
+    x[:, :, 6:10, 6:10] = 0.9  # a bright square in the middle
+    a, b = (augment(x, torch.Generator().manual_seed(3)) for _ in range(2))
+    assert torch.equal(a, b) and a.shape == x.shape
+    assert a.min() >= 0 and a.max() <= 1
+    assert not torch.equal(a, x)
+    means = a.mean((1, 2, 3))
+    assert means.std() > 0.01  # each image its own exposure
+    # the square moved at most SHIFT pixels: its brightest pixel stays within reach
+    peaks = a.mean(1).flatten(1).argmax(1)
+    rows, cols = peaks // 16, peaks % 16
+    assert (
+        (rows >= 6 - SHIFT) & (rows < 10 + SHIFT) & (cols >= 6 - SHIFT) & (cols < 10 + SHIFT)
+    ).all()
+
+
+def test_training_with_augment_keeps_the_recorded_image_as_the_target(tiny_data, tmp_path):
+    cfg = TrainConfig(
+        metric="l1", steps=3, batch_size=16, latent_dim=8, monitor_pairs=16, augment=True
+    )
+    record = train_vae(tiny_data, tmp_path / "g", cfg, progress=False)
+    assert np.isfinite(record["loss"])
+    assert load_vae(tmp_path / "g")[1]["train"]["augment"] is True
 
 
 def test_baseline_trains_without_action_term(tiny_data, tmp_path):

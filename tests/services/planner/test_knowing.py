@@ -8,6 +8,7 @@ import torch
 from services.encoder.model import VAE, VAEConfig
 from services.planner.knowing import (
     BATCH,
+    EXPOSURE,
     FACTOR,
     MIN_MEMBERS,
     MatchError,
@@ -239,17 +240,21 @@ def test_look_many_gives_what_look_gives_and_leaves_torch_threads_as_they_were()
     assert look_many(vae)[0].shape == (0, 4)
 
 
-def test_a_brighter_or_tinted_image_is_redrawn_as_well_but_a_dark_one_is_not():
-    """The whole-image error forgives a camera's exposure and white balance (a gain per
-    channel within GAIN), never a change of content nor a frame five times too dark."""
+def test_a_brighter_image_is_redrawn_as_well_but_a_dark_or_recoloured_one_is_not():
+    """The whole-image error forgives a camera's exposure (one gain within EXPOSURE), never a
+    change of content, a frame five times too dark, or a colour cast."""
     rng = np.random.default_rng(0)
     drawn = torch.from_numpy(rng.integers(40, 200, (3, 16, 16, 3), dtype=np.uint8))
-    tinted = (drawn.float() * torch.tensor([1.2, 1.1, 0.9])).round().to(torch.uint8)
-    dark = (drawn.float() * 0.2).round().to(torch.uint8)
+
+    def scaled(gains: list[float]) -> torch.Tensor:
+        return (drawn.float() * torch.tensor(gains)).clamp(0, 255).round().to(torch.uint8)
+
     other = torch.from_numpy(rng.integers(40, 200, (3, 16, 16, 3), dtype=np.uint8))
-    images = torch.cat([drawn, tinted, dark, other])
-    whole = _errors(drawn.repeat(4, 1, 1, 1), images)[:, 0].reshape(4, 3)
+    high = EXPOSURE[1]
+    images = [drawn, scaled([high] * 3), scaled([0.2] * 3), scaled([1.0, 1.0, 0.7]), other]
+    whole = _errors(drawn.repeat(len(images), 1, 1, 1), torch.cat(images))[:, 0].reshape(-1, 3)
     assert whole[0].max() == 0
     assert whole[1].max() < 1e-5  # rounding only
-    assert whole[2].min() > 0.01  # the gain stops at GAIN[0]
-    assert whole[3].min() > 0.01
+    assert whole[2].min() > 0.01  # the gain stops at EXPOSURE[0]
+    assert whole[3].min() > 1e-3  # blue at 0.7 of the others
+    assert whole[4].min() > 0.01
