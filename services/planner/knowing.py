@@ -43,7 +43,7 @@ from shared.plans import Match, UnknownImageError, refused_end
 
 FILE = "match.json"
 FORMAT = "lsr-match"
-VERSION = 4  # 4: the whole-image error after fitting each channel's gain
+VERSION = 4  # 4: the whole-image error after fitting the drawing's exposure
 QUANTILE = 0.999
 FACTOR = 2.0
 EXPOSURE = (0.87, 1.15)  # a drawing's fitted gain: a camera's exposure, within 0.2 stops
