@@ -163,8 +163,11 @@ def augment(x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     noise = torch.randn(x.shape, generator=generator).to(x.device) * sigma
     looked = F.pad(x * gain + noise, (SHIFT,) * 4, mode="replicate")
     dx, dy = (torch.randint(0, 2 * SHIFT + 1, (b,), generator=generator) for _ in range(2))
-    shifted = [looked[i, :, dy[i] : dy[i] + h, dx[i] : dx[i] + w] for i in range(b)]
-    return torch.stack(shifted).clamp(0, 1)
+    rows = (dy[:, None] + torch.arange(h))[:, None, :, None].to(x.device)
+    cols = (dx[:, None] + torch.arange(w))[:, None, None, :].to(x.device)
+    every = torch.arange(b, device=x.device)[:, None, None, None]
+    channels = torch.arange(x.shape[1], device=x.device)[None, :, None, None]
+    return looked[every, channels, rows, cols].clamp(0, 1)  # each image's own window
 
 
 def latent_gap(mu1: np.ndarray, mu2: np.ndarray, a: np.ndarray, metric: str) -> dict[str, float]:

@@ -9,7 +9,8 @@ needs nothing but the training data; tasks defined by their data have no labels)
   (`Roadmap.nearest_node`), against that node's own training images: regions differ tenfold
   in spread (the cloth model: 0.34 to 3.5), so one threshold for all let a rotated, fully
   folded cloth (a tight region) through;
-- the reconstruction error of the decoded mean over the whole image;
+- the reconstruction error of the decoded mean over the whole image, the drawing scaled to the
+  image's exposure first (`_errors`);
 - and over its worst quarter-frame patch: a covered half, an upside-down shirt or a shifted
   frame is wrong in one place, which a whole-image mean dilutes into camera noise.
 The score is the largest of the three ratios; an image is known while it is at most 1.
