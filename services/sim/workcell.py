@@ -19,8 +19,8 @@ from shared.registration import Registration, RegistrationError, to_table_frame
 from shared.tasks.base import World
 from shared.workcell import CellCamera, Marker, Workcell, marker_cells
 
-FRAME_SCALE = 2.2  # the frame's field of view over the canonical one (tangent of the half-angle)
-FRAME_SIZE = 400  # pixels: 0.71 frame pixels per canonical pixel at 256
+FRAME_SCALE = 4.0  # the frame's field of view over the canonical one (tangent of the half-angle)
+FRAME_SIZE = 720  # pixels: 0.70 frame pixels per canonical pixel at 256, as 400 at 2.2 gave
 WHITE = "0.93 0.93 0.93 1"
 BLACK = "0.03 0.03 0.03 1"
 BASE_M = 0.0006  # the printed sheet's thickness on the table

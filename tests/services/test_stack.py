@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from services.planner.evaluate import TransitionChecker
+from services.sim.workcell import FRAME_SIZE
 from services.stack import Stack, StackConfig, check_ports_free, free_port
 from shared.bus import (
     API_PLAN_KEY,
@@ -348,6 +349,10 @@ def frame(http: httpx.Client, state: dict, seed: int = 0, task: str = "box_stack
     return reply.json()["image"]
 
 
+NEAR = slice(FRAME_SIZE // 2, FRAME_SIZE)  # rows of box stacking's markers, all near the camera
+FAR = slice(0, FRAME_SIZE * 3 // 8)  # rows of the cloth's two far markers
+
+
 def covered(image_b64: str, rows: slice) -> str:
     """The frame with a band of it painted over, as a sleeve or a hand would."""
     pixels = np.array(Image.open(io.BytesIO(base64.b64decode(image_b64))))
@@ -359,7 +364,7 @@ def covered(image_b64: str, rows: slice) -> str:
 
 def test_a_camera_frame_is_registered_to_the_table_frame_and_planned(http):
     start, goal = frame(http, START, seed=5), frame(http, GOAL, seed=6)
-    assert Image.open(io.BytesIO(base64.b64decode(start))).size == (400, 400)
+    assert Image.open(io.BytesIO(base64.b64decode(start))).size == (FRAME_SIZE, FRAME_SIZE)
     reply = http.post(
         "/plan", json={"task": "box_stacking", "start": {"image": start}, "goal": {"image": goal}}
     )
@@ -374,7 +379,7 @@ def test_a_camera_frame_is_registered_to_the_table_frame_and_planned(http):
 
 @pytest.mark.parametrize("end", ["start", "goal"])
 def test_a_frame_whose_markers_are_covered_is_not_known_and_the_reason_says_so(http, end):
-    shown = covered(frame(http, START if end == "start" else GOAL, seed=3), slice(230, 400))
+    shown = covered(frame(http, START if end == "start" else GOAL, seed=3), NEAR)
     body = {**GOOD, end: {"image": shown}}
     result = http.post("/plan", json=body).json()
     assert result["plans"] == [] and not result["match"][end]["known"]
@@ -387,7 +392,7 @@ def test_reported_frames_are_registered_and_one_without_markers_is_refused_by_fi
     row = {"before": shown, "action": None, "after": shown}
     reply = http.post("/experience", json={"task": "cloth_folding", "tuples": [row]})
     assert reply.status_code == 200, reply.text
-    row["after"] = covered(shown, slice(0, 130))  # the two far markers
+    row["after"] = covered(shown, FAR)
     reply = http.post("/experience", json={"task": "cloth_folding", "tuples": [row]})
     assert reply.status_code == 422 and "tuples.0.after" in reply.text
     assert "table markers were not found" in reply.text
@@ -398,7 +403,7 @@ def test_execute_reaches_a_goal_given_as_a_camera_frame(http):
     reply = http.post("/execute", json=body)
     assert reply.status_code == 200, reply.text
     assert reply.json()["success"], reply.json()["reason"]
-    body["goal"] = {"image": covered(frame(http, GOAL, seed=8), slice(230, 400))}
+    body["goal"] = {"image": covered(frame(http, GOAL, seed=8), NEAR)}
     result = http.post("/execute", json=body).json()
     assert result["reason"] == "unknown_goal" and result["steps"] == []
     assert "table markers were not found" in result["detail"]
@@ -532,7 +537,7 @@ def test_robot_client_reaches_its_goal_and_reports_what_it_did(stack, access):
     recorded = load_dataset(Path(stack.config.env["LSR_EXPERIENCE_DIR"]) / "box_stacking")
     assert int(recorded.a.sum()) == steps >= 5
     assert f"[r2] {len(recorded)} experience tuples recorded" in result.stdout
-    assert recorded.image1.shape[1:] == (64, 64, 3)  # its 400 px frames, registered
+    assert recorded.image1.shape[1:] == (64, 64, 3)  # its camera frames, registered
     state = TASK.parse_state(START)
     for u in recorded.u[recorded.a == 1]:
         state = TASK.apply(state, TASK.array_to_action(u))  # the actions as executed, in order

@@ -11,6 +11,7 @@ from services.cli import main
 from services.data.exporter import export_dataset
 from services.data.importer import ImportConfig, import_dataset
 from services.data.pairs import DataImportError
+from services.sim.workcell import FRAME_SIZE
 from shared.dataset import load_dataset, read_manifest
 from shared.tasks.declared import DataTask
 
@@ -278,7 +279,7 @@ def _frames_folder(root, covered_row=None):
             for k in (1, 2):
                 frame = world.frame()
                 if i == covered_row and k == 2:
-                    frame[230:] = 128  # a hand over the near markers
+                    frame[FRAME_SIZE // 2 :] = 128  # a hand over the near markers
                 Image.fromarray(frame).save(root / f"f{i}{k}.png")
             lines.append(json.dumps({"image1": f"f{i}1.png", "image2": f"f{i}2.png",
                                      "action": None, "episode": f"e{i}"}))  # fmt: skip
