@@ -1,16 +1,16 @@
 """What registration costs a /plan: camera frames against table-frame images, side by side.
 
 Starts the stack (`lsr up`'s launcher) with the shipped model and sends image-to-image /plan
-requests at concurrency 1 between the same random states, once as the views at the model's
-size (taken as in the table frame already: registered here) and as the cell camera's whole
-frames (400 px, as PNG and as JPEG at quality 90, sent to the encoder as those bytes, which
-decodes and registers them), at the `camera` look by default (a camera's noise: a frame's PNG
-is 110 kB, where at `clean` it is 9 kB): from a fixed camera (one look for every state: a
-cell's, whose markers registration tracks from frame to frame) and from a camera that moved
-before every frame (each state a new look: the markers are looked for again), in alternating
-rounds, since this shared VM drifts from run to run. Prints p50 / p99 of each, the encoder's
-handler time (which holds the decoding and registration), the request sizes, and registration
-alone per frame in one process.
+requests at concurrency 1 between the same random states, once as the views at the model's size
+(taken as in the table frame already: registered here) and as the cell camera's whole frames
+(720 px since 2026-12-06, 400 before; as PNG and as JPEG at quality 90, sent to the encoder as
+those bytes, which decodes and registers them), at the `camera` look by default (a camera's
+noise: a 400 px frame's PNG was 110 kB, at `clean` 9 kB): from a fixed camera (one look for
+every state: a cell's, whose markers registration tracks from frame to frame) and from a camera
+that moved before every frame (each state a new look: the markers are looked for again), in
+alternating rounds, since this shared VM drifts from run to run. Prints p50 / p99 of each, the
+encoder's handler time (which holds the decoding and registration), the request sizes, and
+registration alone per frame in one process.
 
     .venv/bin/python benchmarks/bench_plan_frames.py [--rounds 6] [--per-round 100] [--pairs 50]
         [--concurrency 1] [--appearance camera]
@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_plan_latency import through_stack  # noqa: E402
 from plan_requests import request_bodies  # noqa: E402
 
+from services.sim.workcell import FRAME_SIZE  # noqa: E402
 from services.stack import Stack, StackConfig, free_port  # noqa: E402
 from shared.images import decode_image  # noqa: E402
 from shared.registration import Registration  # noqa: E402
@@ -73,17 +74,17 @@ def main() -> None:
     same = {"pairs": args.pairs, "size": 64, "seed": args.seed, "appearance": args.appearance}
     kinds = {
         "views (64 px)": request_bodies(**same),
-        "frames (400 px)": request_bodies(**same, frames=True, fixed_camera=True),
-        "frames (400 px JPEG 90)": request_bodies(
+        f"frames ({FRAME_SIZE} px)": request_bodies(**same, frames=True, fixed_camera=True),
+        f"frames ({FRAME_SIZE} px JPEG 90)": request_bodies(
             **same, frames=True, jpeg_quality=90, fixed_camera=True
         ),
-        "frames, the camera moved (400 px)": request_bodies(**same, frames=True),
-        "frames, the camera moved (400 px JPEG 90)": request_bodies(
+        f"frames, the camera moved ({FRAME_SIZE} px)": request_bodies(**same, frames=True),
+        f"frames, the camera moved ({FRAME_SIZE} px JPEG 90)": request_bodies(
             **same, frames=True, jpeg_quality=90
         ),
     }
     sizes = {k: int(np.median([len(b["start"]["image"]) for b in v])) for k, v in kinds.items()}
-    for kind in ("frames (400 px)", "frames, the camera moved (400 px)"):
+    for kind in (f"frames ({FRAME_SIZE} px)", f"frames, the camera moved ({FRAME_SIZE} px)"):
         print(f"registration alone, {kind}:", json.dumps(registration_alone(kinds[kind], 64)))
     runs: dict[str, list[dict]] = {kind: [] for kind in kinds}
     with tempfile.TemporaryDirectory() as logs:

@@ -42,10 +42,11 @@ def parse_state(task: Task, field: str, obj: Any) -> Any:
 
 MAX_FRAME = 4096  # pixels a side of a camera frame
 MAX_FRAME_PIXELS = 4096 * 3072  # decoded pixels of one frame: a 12-megapixel camera's
-# A JPEG frame is decoded reduced (by 2, 4 or 8, in the decoder) down to this shorter side: at
-# the simulated cell's 2.2 times the canonical field of view the table view still spans 233
-# frame pixels, more than in the cell's own 400 px frames (182).
-FRAME_DETAIL = 512
+# A JPEG frame is decoded reduced (by 2, 4 or 8, in the decoder) down to this shorter side: the
+# simulated cell's own frames (4.0 times the canonical field of view, 720 px), so that the
+# markers and the table view keep at least the pixels they have there (512 served the cell's
+# 2.2-times, 400 px frames before 2026-12-06).
+FRAME_DETAIL = 720
 
 
 def frame_size(field: str, data: bytes) -> tuple[int, int]:
