@@ -204,6 +204,8 @@ def choose(
         )
         source = "the paper's for the task" if dm is None else "the dataset's task.json settings"
         why.append(f"d_m {TrainConfig(metric=recipe.metric, dm=dm).d_m(data.task)}: {source}")
+        if recipe.augment:
+            why.append("augment: the encoder saw each image under a drawn look (--augment)")
     vae = TrainConfig(
         metric=recipe.metric,
         dm=dm,

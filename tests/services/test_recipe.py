@@ -151,6 +151,9 @@ def test_settings_come_from_the_dataset_and_say_why(tmp_path):
     assert vae.steps == vae_steps(40) and apn.restarts == Recipe().apn_restarts
     _, roadmap, _, why = choose(load_dataset(declared), Recipe(min_samples=2))
     assert roadmap.min_samples == 2 and "min_samples 2: given" in why
+    assert not vae.augment and not any(line.startswith("augment") for line in why)
+    vae, _, _, why = choose(load_dataset(declared), Recipe(augment=True))
+    assert vae.augment and any(line.startswith("augment: ") for line in why)
 
 
 def test_a_task_measured_settings_come_after_the_dataset_s(tmp_path):
