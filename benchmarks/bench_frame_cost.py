@@ -1,13 +1,13 @@
 """What one camera frame costs on its way to a model: decoding (as the gateway decodes a frame)
 and registration, by frame size and codec, in one process on one core.
 
-Renders `--frames` random states of each task at `camera` (the cell's frame: 720 px since
-2026-12-06, 400 before), resizes each to every `--sides` (as a higher-resolution camera would
-give them), encodes it as JPEG (quality 90) and PNG, and times, in the order a robot's camera
-sends them (one fixed camera: the markers are tracked from the last frame; a camera that moved
-between frames: `bench_registration.py`'s "new look"): decoding (`decode_image` with the
-gateway's FRAME_DETAIL and MAX_FRAME_PIXELS; a PNG beyond them is refused, not timed) and
-`Registration.register`. Prints p50 / p99 in ms per task, side and codec.
+Renders `--frames` random states of each task at `camera` (the cell's frame, `FRAME_SIZE` px),
+resizes each to every `--sides` (as a higher-resolution camera would give them), encodes it as
+JPEG (quality 90) and PNG, and times, in the order a robot's camera sends them (one fixed
+camera: the markers are tracked from the last frame; a camera that moved between frames:
+`bench_registration.py`'s "new look"): decoding (`decode_image` with the gateway's FRAME_DETAIL
+and MAX_FRAME_PIXELS; a PNG beyond them is refused, not timed) and `Registration.register`.
+Prints p50 / p99 in ms per task, side and codec.
 
     .venv/bin/python benchmarks/bench_frame_cost.py [--tasks box_stacking] [--frames 20]
         [--sides 720 1280 2048 4096] [--json runs/frame_cost.json]

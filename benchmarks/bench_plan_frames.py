@@ -3,14 +3,14 @@
 Starts the stack (`lsr up`'s launcher) with the shipped model and sends image-to-image /plan
 requests at concurrency 1 between the same random states, once as the views at the model's size
 (taken as in the table frame already: registered here) and as the cell camera's whole frames
-(720 px since 2026-12-06, 400 before; as PNG and as JPEG at quality 90, sent to the encoder as
-those bytes, which decodes and registers them), at the `camera` look by default (a camera's
-noise: a 400 px frame's PNG was 110 kB, at `clean` 9 kB): from a fixed camera (one look for
-every state: a cell's, whose markers registration tracks from frame to frame) and from a camera
-that moved before every frame (each state a new look: the markers are looked for again), in
-alternating rounds, since this shared VM drifts from run to run. Prints p50 / p99 of each, the
-encoder's handler time (which holds the decoding and registration), the request sizes, and
-registration alone per frame in one process.
+(`FRAME_SIZE` px, as PNG and as JPEG at quality 90, sent to the encoder as those bytes, which
+decodes and registers them), at the `camera` look by default (a camera's noise: a 400 px
+frame's PNG was 110 kB, at `clean` 9 kB): from a fixed camera (one look for every state: a
+cell's, whose markers registration tracks from frame to frame) and from a camera that moved
+before every frame (each state a new look: the markers are looked for again), in alternating
+rounds, since this shared VM drifts from run to run. Prints p50 / p99 of each, the encoder's
+handler time (which holds the decoding and registration), the request sizes, and registration
+alone per frame in one process.
 
     .venv/bin/python benchmarks/bench_plan_frames.py [--rounds 6] [--per-round 100] [--pairs 50]
         [--concurrency 1] [--appearance camera]
