@@ -5,8 +5,8 @@ registration needs and the whole canonical view, by field of view and turn. Geom
         [--scales 2.2 3.0 3.6 4.0 4.4] [--turns 5 10 20 30] [--poses 2000] [--seed 0]
 
 Each pose turns the task's nominal camera about its own centre (roll, pitch and yaw each drawn
-within +-turn, as `bench_rotation.py` draws them) and moves it within +-5 mm (the `camera`
-look's); the frame is the nominal camera's focal length with `scale` times its field of view
+within +-turn, as `bench_rotation.py` draws them) and moves it within the `camera`
+look's +-5 mm; the frame is the nominal camera's focal length with `scale` times its field of view
 (`services/sim/workcell.py`'s FRAME_SCALE). A pose counts when at least `min_markers` of the
 layout's markers lie whole inside the frame and so do the four corners of the canonical view.
 Chose the cell's frame of 2026-12-06 (4.0: 111 degrees). It predicts what `bench_rotation.py`
@@ -31,9 +31,11 @@ import numpy as np
 from services.sim.appearance import _turn_quat
 from services.sim.workcell import Pinhole
 from services.sim.worlds import make_world
+from shared.appearance import APPEARANCES
 from shared.workcell import load_workcell
 
 SIZE = 1000  # frame pixels: only ratios matter
+SHIFT_M = APPEARANCES["camera"].episode.camera_shift_m  # type: ignore[union-attr]
 
 
 def _inside(camera: Pinhole, points: np.ndarray, scale: float) -> bool:
@@ -64,7 +66,7 @@ def in_frame(task: str, scales: list[float], turns: list[float], poses: int, see
                 turned = np.zeros(9)
                 mujoco.mju_quat2Mat(turned, _turn_quat(*np.deg2rad(rng.uniform(-turn, turn, 3))))
                 axes = turned.reshape(3, 3).T @ nominal.axes
-                moved = Pinhole(nominal.position + rng.uniform(-0.005, 0.005, 3), axes,
+                moved = Pinhole(nominal.position + rng.uniform(-SHIFT_M, SHIFT_M, 3), axes,
                                 nominal.focal, nominal.frame)  # fmt: skip
                 seen = sum(_inside(moved, quad, scale) for quad in markers)
                 held += seen >= workcell.min_markers and _inside(moved, view, scale)

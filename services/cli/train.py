@@ -9,6 +9,8 @@ from pathlib import Path
 
 from services.cli.common import dataset_setting, single_thread_torch
 
+AUGMENT_HELP = "the encoder sees each image under a drawn look (exposure, colour, noise, shift)"
+
 
 def cmd_train_vae(args: argparse.Namespace) -> int:
     from services.encoder.train import TrainConfig, dm_from_baseline, train_vae
@@ -145,11 +147,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     research.add_argument("--min-samples", type=int)
     research.add_argument("--apn-steps", type=int)
     research.add_argument("--apn-restarts", type=int, help="default 5")
-    research.add_argument(
-        "--augment",
-        action="store_true",
-        help="the VAE sees each image under a drawn look",
-    )
+    research.add_argument("--augment", action="store_true", help=AUGMENT_HELP)
     model.set_defaults(handler=cmd_train_model)
 
     vae = train.add_parser("vae", help="train the action-VAE (metric none = baseline VAE-b)")
@@ -187,9 +185,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=["sample", "mean"],
         help="latents the action term sees: reparameterised samples or means",
     )
-    vae.add_argument(
-        "--augment", action="store_true", help="the encoder sees each image under a drawn look"
-    )
+    vae.add_argument("--augment", action="store_true", help=AUGMENT_HELP)
     vae.add_argument("--seed", type=int, default=0)
     vae.add_argument("--threads", type=int, default=2)
     vae.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
