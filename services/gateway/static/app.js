@@ -226,8 +226,8 @@ function endpointBody(end) {
 }
 
 // Each end's renders in order: a reply that comes after the end has changed (another state,
-// an uploaded image) touches neither its picture nor its error slot, which may by then hold
-// a plan's error for the new end.
+// an uploaded image, another task's editor built in its place) touches neither its picture nor
+// its error slot, which may by then hold a plan's error for the new end.
 async function refresh(end) {
   drawEditor(end);
   const seq = end.renderSeq = (end.renderSeq || 0) + 1;
@@ -245,14 +245,18 @@ async function refresh(end) {
   try {
     const reply = await api("POST", "/render", { task: ui.task, state: end.state, seed: 0 });
     const body = await reply.json();
-    if (seq !== end.renderSeq) return;
+    if (stale(end, seq)) return;
     end.preview.src = "data:image/png;base64," + body.image;
     $(end.name + "-error").textContent = "";
   } catch (err) {
-    if (seq !== end.renderSeq) return;
+    if (stale(end, seq)) return;
     $(end.name + "-error").textContent = "";
     showError(err, end.name + "-error");
   }
+}
+
+function stale(end, seq) {
+  return seq !== end.renderSeq || ui.ends[end.name] !== end;
 }
 
 function drawEditor(end) {
@@ -866,9 +870,11 @@ async function chooseTask(task) {
   $("exec-status").textContent = "Not run yet.";
   clearErrors();
   try {
-    ui.info = await (await api("GET", `/tasks/${encodeURIComponent(task)}`)).json();
+    const info = await (await api("GET", `/tasks/${encodeURIComponent(task)}`)).json();
+    if (ui.task !== task) return;  // another task was chosen meanwhile: its editors stand
+    ui.info = info;
   } catch (err) {
-    showError(err, "task-error");
+    if (ui.task === task) showError(err, "task-error");
     return;
   }
   buildEndpoint("start");
