@@ -51,7 +51,7 @@ from services.planner.versions import roadmap_dir
 from shared.appearance import manifest_appearance
 from shared.dataset import load_dataset
 
-TERMS = ("distance", "whole image", "worst patch")
+TERMS = ("distance", *knowing.ERRORS)
 Kind = Callable[[np.ndarray, np.random.Generator], np.ndarray]
 
 
@@ -191,7 +191,7 @@ def frame_kinds(
 
 
 def scores(planner: VisualPlanner, images: np.ndarray) -> np.ndarray:
-    """(N, 3): each term over its threshold (distance, whole image, worst patch)."""
+    """(N, 4): each term over its threshold (TERMS)."""
     assert planner.calibration is not None
     z, errors = planner.look(images)
     return knowing.ratios(planner.roadmap, planner.calibration, z, errors)[1]

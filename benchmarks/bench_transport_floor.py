@@ -60,7 +60,7 @@ def serve_echo(endpoint: str, operation: str, sleep_ms: float) -> None:
         time.sleep(sleep_ms / 1e3)
         return EncodeReply(
             latents=WireArray.of(np.zeros((rows, 64), np.float32)),
-            errors=WireArray.of(np.zeros((rows, 2), np.float32)),
+            errors=WireArray.of(np.zeros((rows, 3), np.float32)),
         )
 
     server.serve(service_key(operation, "t", operation), echo)

@@ -80,7 +80,7 @@ class EncodeRequest(TaskMessage):
 
 class EncodeReply(Message):
     latents: WireArray  # float32 (N, D): the encoder means
-    errors: WireArray | None = None  # float32 (N, 2): reconstruction errors, whole and worst patch
+    errors: WireArray | None = None  # float32 (N, 3): knowing.ERRORS of each image
     # per image, why its frame could not be registered (None: it was, or needed not be);
     # such an image is not known, whatever its latent says
     refused: list[str | None] | None = None
@@ -119,7 +119,7 @@ class PathsRequest(TaskMessage):
     z_start: WireArray  # float32 (D,)
     z_goal: WireArray
     max_plans: int = Field(8, ge=1, le=MAX_PLANS)
-    errors: WireArray | None = None  # float32 (2, 2): both images' EncodeReply.errors
+    errors: WireArray | None = None  # float32 (2, 3): both images' EncodeReply.errors
     # the node a closed loop's last step was meant to reach (the last plan's nodes[1]): the
     # path starts there where the start image is known there too (knowing.keep_place)
     expect_node: int | None = Field(None, ge=0)

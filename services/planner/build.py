@@ -80,7 +80,7 @@ def build_from_dataset(
         "epsilon": roadmap.epsilon,
         **purity,
         "match_threshold": calibration.threshold,
-        "known_training_images": float((terms.max(1) <= 1.0).mean()),  # knowing's three terms
+        "known_training_images": float((terms.max(1) <= 1.0).mean()),  # every knowing term
         "encode_seconds": encoded - started,
         "build_seconds": built - encoded,
         "forbidden_turns": sum(map(len, roadmap.turns.values())),

@@ -15,7 +15,7 @@ from safetensors.numpy import load_file, save_file
 
 from services.encoder.checkpoint import encode_images
 from services.encoder.model import VAE
-from services.planner.knowing import look_many
+from services.planner.knowing import ERRORS, look_many
 from services.planner.roadmap import RoadmapError
 from shared.checkpoint import replace_atomically
 from shared.dataset import Dataset
@@ -54,7 +54,7 @@ class Members:
     """The points a roadmap was built from, in its point order."""
 
     points: np.ndarray  # (2N, D) float32 latents
-    errors: np.ndarray  # (2N, 2) float32 reconstruction errors (whole image, worst patch)
+    errors: np.ndarray  # (2N, 3) float32 reconstruction errors (knowing.ERRORS)
     actions: np.ndarray  # (N, *action shape): each tuple's action, -1 for no-action pairs
     a: np.ndarray  # (N,) uint8: 1 for an action pair
     states: np.ndarray  # (2N, *state shape): the true states where known
@@ -81,6 +81,11 @@ class Members:
         missing = [f.name for f in fields(cls) if f.name not in arrays]
         if missing:
             raise RoadmapError(f"{folder / MEMBERS}: missing arrays {', '.join(missing)}")
+        if arrays["errors"].shape[1:] != (len(ERRORS),):
+            raise RoadmapError(
+                f"{folder / MEMBERS}: {arrays['errors'].shape[1]} reconstruction errors a point, "
+                f"an older knowing's; calibrate the model again with `lsr calibrate`"
+            )
         return cls(**{f.name: arrays[f.name] for f in fields(cls)})
 
     @classmethod

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from services.planner.knowing import Calibration, load_calibration, place_ends
+from services.planner.knowing import ERRORS, Calibration, load_calibration, place_ends
 from services.planner.places import Places
 from services.planner.roadmap import Roadmap
 from services.planner.versions import current_version, version_dir
@@ -115,9 +115,10 @@ def setup(context: ServiceContext) -> dict[str, Handler]:
         if request.errors is None:
             raise FieldError("errors", "both images' reconstruction errors are needed")
         errors = request.errors.numpy().astype(np.float64)
-        if errors.shape != (2, 2) or not np.isfinite(errors).all() or (errors < 0).any():
+        if errors.shape != (2, len(ERRORS)) or not np.isfinite(errors).all() or (errors < 0).any():
             raise FieldError(
-                "errors", "must be 2 x 2 finite, non-negative numbers (whole image, worst patch)"
+                "errors",
+                f"must be 2 x {len(ERRORS)} finite, non-negative numbers ({', '.join(ERRORS)})",
             )
         try:
             matched, start, goal = place_ends(

@@ -31,7 +31,7 @@ def members(rows: list[tuple[str, str, int]], seed: int) -> Members:
     u = np.array([[k, k, k, k] if k else [-1] * 4 for *_, k in rows], np.int8)
     return Members(
         points=points,
-        errors=np.full((len(points), 2), 0.01, np.float32),
+        errors=np.full((len(points), 3), 0.01, np.float32),
         actions=u,
         a=(u[:, 0] >= 0).astype(np.uint8),
         states=np.zeros((len(points), 0), np.int8),

@@ -46,14 +46,17 @@ def chain():
             a.append(1)
     z1, z2 = np.array(z1), np.array(z2)
     roadmap = build_roadmap(z1, z2, np.array(a), RoadmapConfig(min_samples=3))
-    # reconstruction errors of the images: whole image, worst patch
+    # reconstruction errors of the images: whole image, worst patch, missing edges
+    n = 2 * len(z1)
     errors = np.column_stack(
-        [rng.uniform(0.001, 0.002, 2 * len(z1)), rng.uniform(0.002, 0.004, 2 * len(z1))]
+        [rng.uniform(0.001, 0.002, n), rng.uniform(0.002, 0.004, n), rng.uniform(0.5, 1.0, n)]
     )
     return roadmap, np.concatenate([z1, z2]), centres, errors
 
 
-GOOD = np.array([[0.0015, 0.003]] * 2)  # two images the model redraws as well as its training ones
+GOOD = np.array(
+    [[0.0015, 0.003, 0.7]] * 2
+)  # two images the model redraws as well as its training ones
 
 
 def test_the_thresholds_are_a_factor_over_what_training_images_reach(chain):
@@ -64,6 +67,8 @@ def test_the_thresholds_are_a_factor_over_what_training_images_reach(chain):
     assert calibration.threshold == pytest.approx(FACTOR * calibration.training_quantile)
     assert calibration.recon_threshold == pytest.approx(FACTOR * calibration.recon_quantile)
     assert calibration.patch_threshold == pytest.approx(FACTOR * calibration.patch_quantile)
+    assert calibration.edges_threshold == pytest.approx(FACTOR * calibration.edges_quantile)
+    assert 0.5 <= calibration.edges_quantile <= calibration.edges_max <= 1.0
     assert calibration.recon_quantile <= calibration.recon_max <= 0.002
     assert 0.002 <= calibration.patch_quantile <= calibration.patch_max <= 0.004
     nodes = roadmap.nearest_node(latents)
@@ -99,16 +104,23 @@ def test_an_image_the_model_cannot_redraw_is_not_known_even_inside_a_region(chai
         roadmap,
         calibration,
         np.stack([centres[1], centres[1]]),
-        np.array([[0.0015, 0.003], [0.05, 0.003]]),
+        np.array([[0.0015, 0.003, 0.7], [0.05, 0.003, 0.7]]),
     )
     assert inside.known and not badly_drawn.known and badly_drawn.node == inside.node == 1
     assert badly_drawn.score == pytest.approx(0.05 / calibration.recon_threshold)
     # wrong in one place only (a covered corner): the worst patch tells
     _, covered = match(
-        roadmap, calibration, np.stack([centres[1]] * 2), np.array([[0.0015, 0.003], [0.0015, 0.5]])
+        roadmap, calibration, np.stack([centres[1]] * 2), GOOD + np.array([0, 0.5, 0])
     )
-    assert not covered.known and covered.score == pytest.approx(0.5 / calibration.patch_threshold)
-    for goal_errors, why in (([0.05, 0.003], "cannot redraw it"), ([0.0015, 0.5], "a part of it")):
+    assert not covered.known and covered.score == pytest.approx(0.503 / calibration.patch_threshold)
+    # close in every pixel, but without the edges the model draws there (a grey cover)
+    _, flat = match(roadmap, calibration, np.stack([centres[1]] * 2), GOOD + np.array([0, 0, 9.3]))
+    assert not flat.known and flat.score == pytest.approx(10.0 / calibration.edges_threshold)
+    for goal_errors, why in (
+        ([0.05, 0.003, 0.7], "cannot redraw it"),
+        ([0.0015, 0.5, 0.7], "a part of it"),
+        ([0.0015, 0.003, 10], "lacks the edges"),
+    ):
         with pytest.raises(UnknownImageError, match=why):
             check_ends(
                 roadmap, calibration, centres[1], centres[1], np.array([GOOD[0], goal_errors])
@@ -131,7 +143,7 @@ def test_a_region_is_judged_by_its_own_spread():
     a[0], z2[0] = 1, z2[60]  # one action between the regions
     roadmap = build_roadmap(z1, z2, a, RoadmapConfig(min_samples=3))
     latents = np.concatenate([z1, z2])
-    calibration = calibrate(roadmap, latents, np.full((240, 2), 0.001))
+    calibration = calibrate(roadmap, latents, np.full((240, 3), 0.001))
     tight, broad = (int(roadmap.nearest_node(c)) for c in centres)
     assert calibration.node_thresholds[tight] * 10 < calibration.node_thresholds[broad]
     nodes = roadmap.nearest_node(latents)
@@ -142,7 +154,7 @@ def test_a_region_is_judged_by_its_own_spread():
             FACTOR * np.quantile(mine, calibration.quantile)
         )
     offset = np.array([0.5, 0.5, 0, 0])  # L1 1.0: the broad region's images lie this far
-    near_tight, near_broad = match(roadmap, calibration, centres + offset, np.full((2, 2), 0.001))
+    near_tight, near_broad = match(roadmap, calibration, centres + offset, np.full((2, 3), 0.001))
     assert not near_tight.known and near_tight.node == tight
     assert near_broad.known and near_broad.node == broad
     assert calibration.threshold > 1.0  # the pooled threshold would have known both
@@ -258,3 +270,19 @@ def test_a_brighter_image_is_redrawn_as_well_but_a_dark_or_recoloured_one_is_not
     assert whole[2].min() > 0.01  # the gain stops at EXPOSURE[0]
     assert whole[3].min() > 1e-3  # blue at 0.7 of the others
     assert whole[4].min() > 0.01
+
+
+def test_a_cover_of_the_tables_colour_lacks_the_edges_its_drawing_has():
+    """A drawing of faint lines on a grey table: the image itself (with a camera's noise) has
+    those edges, a copy with half its area painted the table's grey does not."""
+    rng = np.random.default_rng(0)
+    drawn = np.full((1, 32, 32, 3), 150, np.uint8)
+    drawn[:, ::8] = drawn[:, :, ::8] = 110  # grid lines
+    noisy = np.clip(drawn + rng.normal(0, 2.0, drawn.shape), 0, 255).astype(np.uint8)
+    covered = noisy.copy()
+    covered[:, 16:] = 150
+    errors = _errors(
+        torch.from_numpy(np.repeat(drawn, 2, 0)), torch.from_numpy(np.concatenate([noisy, covered]))
+    )
+    seen, hidden = errors[:, 2]
+    assert seen < 1.0 < 3 * seen < hidden

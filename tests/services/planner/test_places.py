@@ -25,7 +25,7 @@ def roadmap_and_members():
     config = RoadmapConfig(metric="l1", eps_rule="paper", w_eps=1.0, min_samples=1)
     roadmap = build_roadmap(np.array(z1), np.array(z2), a, config)
     points = np.stack([z1, z2], 1).reshape(-1, 2).astype(np.float32)
-    calibration = calibrate(roadmap, points, np.full((len(points), 2), 1e-3))
+    calibration = calibrate(roadmap, points, np.full((len(points), 3), 1e-3))
     wide = replace(calibration, node_thresholds=(5.0, 5.0))  # each node knows the other's images
     return roadmap, wide, points
 
@@ -51,7 +51,7 @@ def test_places_load_from_the_roadmaps_members_or_not_at_all(tmp_path):
     n = len(points)
     Members(
         points=points,
-        errors=np.zeros((n, 2), np.float32),
+        errors=np.zeros((n, 3), np.float32),
         actions=np.full((n // 2, 1), -1, np.int8),
         a=np.zeros(n // 2, np.uint8),
         states=np.zeros((n, 0), np.int8),

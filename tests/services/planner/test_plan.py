@@ -74,9 +74,9 @@ def test_a_closed_loop_keeps_its_place_where_the_image_is_known_there(planner):
 
     vp, centres = planner
     roadmap = vp.roadmap
-    errors = np.full((2, 2), 1e-3)
+    errors = np.full((2, 3), 1e-3)
     latents = np.concatenate([roadmap.nodes] * 2).astype(np.float64)
-    known = calibrate(roadmap, latents + 0.01, np.full((len(latents), 2), 1e-3))
+    known = calibrate(roadmap, latents + 0.01, np.full((len(latents), 3), 1e-3))
     wide = replace(known, node_thresholds=(1.0, 100.0, 1.0, 1.0))  # node 1 knows far around
     calibrated = VisualPlanner(vp.vae, roadmap, wide)
     start, goal = centres[0] + 0.05, centres[3]  # nearest node 0, within node 1's bound too

@@ -39,7 +39,7 @@ def ask(handler, info, z_start, z_goal, expect_node=None, avoid_steps=()):
         task=info.task,
         z_start=WireArray.of(z_start.astype(np.float32)),
         z_goal=WireArray.of(z_goal.astype(np.float32)),
-        errors=WireArray.of(np.zeros((2, 2), np.float32)),
+        errors=WireArray.of(np.zeros((2, 3), np.float32)),
         expect_node=expect_node,
         avoid_steps=list(avoid_steps),
     )

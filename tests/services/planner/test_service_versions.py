@@ -32,7 +32,7 @@ def test_a_grown_version_is_taken_under_load_without_a_failed_request(
             task=info.task,
             z_start=WireArray.of(z),
             z_goal=WireArray.of(z + 0.01),
-            errors=WireArray.of(np.zeros((2, 2), np.float32)),
+            errors=WireArray.of(np.zeros((2, 3), np.float32)),
         )
     )
     seen: list[str] = []
