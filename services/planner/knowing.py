@@ -53,9 +53,9 @@ QUANTILE = 0.999
 FACTOR = 2.0
 EXPOSURE = (0.87, 1.15)  # a drawing's fitted gain: a camera's exposure, within 0.2 stops
 PATCHES = 4  # a patch is this fraction of the frame's side, moved by half a patch
-# A patch's mean edge strength (|dx| + |dy| of the blurred grey, in [0, 1] a pixel) under which
-# it counts as flat: about 2.5 grey levels a pixel, over what a camera's noise leaves after
-# the blur. It keeps a flat patch's ratio finite and a flat drawing's (a bare table) small.
+# Added to an image patch's mean edge strength (|dx| + |dy| of the blurred grey, [0, 1] a
+# pixel): about 2.5 grey levels a pixel, so that a flat patch's ratio stays finite and a flat
+# drawing's (a bare table) small. The one value tried; not tuned.
 EDGE_FLOOR = 0.01
 BATCH = 250  # images a pass: small enough to stay in the cache
 _THREADS = threading.Lock()  # look_many switches torch's thread count
