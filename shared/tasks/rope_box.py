@@ -326,6 +326,13 @@ class RopeBox(Task[RopeBoxState, RopeBoxAction]):
         swept = self.swept(state)
         green, orange = state.green, state.orange
         if action.kind == "rope":
+            if action.pick not in self.config.pillars:
+                raise IllegalActionError(f"no pillar at {tuple(action.pick)}")
+            if action.release != action.pick:
+                raise IllegalActionError(
+                    f"a rope action's release is its pillar {tuple(action.pick)}, "
+                    f"not {tuple(action.release)}"
+                )
             pillar = self.config.pillars.index(action.pick)
             if abs(swept[pillar]) < 1e-9:
                 raise IllegalActionError(
@@ -432,4 +439,6 @@ class RopeBox(Task[RopeBoxState, RopeBoxAction]):
         values = [int(v) for v in np.asarray(array).reshape(-1)]
         if all(v < 0 for v in values):
             return None
-        return RopeBoxAction(KINDS[values[0]], Cell(*values[1:3]), Cell(*values[3:5]))
+        kind, pick = KINDS[values[0]], Cell(*values[1:3])
+        # a rope action's release is its pillar again: an array (an APN's) may say otherwise
+        return RopeBoxAction(kind, pick, pick if kind == "rope" else Cell(*values[3:5]))

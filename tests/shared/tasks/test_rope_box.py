@@ -8,7 +8,7 @@ from shared.tasks.base import (
     InvalidStateError,
     optimal_moves,
 )
-from shared.tasks.rope_box import Cell, RopeBoxAction
+from shared.tasks.rope_box import KINDS, Cell, RopeBoxAction
 
 TASK = get_task("rope_box")
 
@@ -107,6 +107,18 @@ def test_pushing_a_box_round_a_pillar_carries_the_rope_with_it():
 def test_illegal_moves_name_the_rule(boxes, action, message):
     with pytest.raises(IllegalActionError, match=message):
         TASK.check_action(state(*boxes), action)
+
+
+def test_a_rope_action_from_an_array_lifts_at_its_pick_whatever_its_release_says():
+    """An APN predicts every field; a rope action's release means nothing (an APN's rope
+    action with another release crashed `lsr eval apn` on a 1000-tuple model)."""
+    s = state((0, 0), (1, 1), bent(0, 0, "left"))
+    lifted = TASK.array_to_action(np.array([KINDS.index("rope"), 0, 0, 2, 1], np.int8))
+    assert lifted == lift(0, 0) and TASK.apply(s, lifted) == TASK.apply(s, lift(0, 0))
+    with pytest.raises(IllegalActionError, match=r"no pillar at \(2, 2\)"):
+        TASK.check_action(s, RopeBoxAction("rope", Cell(2, 2), Cell(2, 2)))
+    with pytest.raises(IllegalActionError, match="release is its pillar"):
+        TASK.check_action(s, lift(0, 0)._replace(release=Cell(0, 1)))
 
 
 @pytest.mark.parametrize(
