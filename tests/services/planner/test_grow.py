@@ -248,3 +248,17 @@ def test_members_missing_or_broken_are_named(tmp_path):
     (tmp_path / MEMBERS).write_bytes(b"\x00" * 8)
     with pytest.raises(RoadmapError, match="not a readable safetensors file"):
         Members.load(tmp_path)
+
+
+def test_members_of_an_older_knowing_ask_for_calibration(tmp_path):
+    from safetensors.numpy import load_file, save_file
+
+    from services.planner.members import MEMBERS
+    from services.planner.roadmap import RoadmapError
+
+    members([("A", "B", 1), ("B", "B", 0)], seed=0).save(tmp_path)
+    arrays = load_file(str(tmp_path / MEMBERS))
+    arrays["errors"] = arrays["errors"][:, :2].copy()  # whole image and worst patch: v4's
+    save_file(arrays, str(tmp_path / MEMBERS))
+    with pytest.raises(RoadmapError, match=r"2 reconstruction errors a point.*lsr calibrate"):
+        Members.load(tmp_path)
