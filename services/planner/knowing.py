@@ -170,7 +170,7 @@ def _missing_edges(drawn: torch.Tensor, images: torch.Tensor, patch: int) -> tor
     image's (EDGE_FLOOR added below). A real image has at least the edges its blurry drawing
     has; a cover near the table's colour has none where the drawing has the grid's lines, while
     its squared error stays within a varied task's thresholds (rope-box: 3% of half-covered
-    views known without this term, their covers greys within 20 levels of the table's)."""
+    views known without this term, each covered with a grey near the table's)."""
     stride = max(1, patch // 2)
     strength = [
         F.avg_pool2d(_edge_strength(x), patch, stride=stride).flatten(1) for x in (drawn, images)
