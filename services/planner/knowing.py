@@ -160,9 +160,13 @@ def _errors(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:
     whole = (exposed - images).pow(2).flatten(1).mean(1)
     gaps = (drawn - images).pow(2)
     patch = max(1, images.shape[1] // PATCHES)
-    pooled = F.avg_pool2d(gaps.mean(-1)[:, None], patch, stride=max(1, patch // 2))
-    edges = _missing_edges(exposed, images, patch)
-    return torch.stack([whole, pooled.flatten(1).max(1).values, edges], 1).numpy()
+    worst = _patches(gaps.mean(-1)[:, None], patch).max(1).values
+    return torch.stack([whole, worst, _missing_edges(exposed, images, patch)], 1).numpy()
+
+
+def _patches(values: torch.Tensor, patch: int) -> torch.Tensor:
+    """(B, P): the mean of (B, 1, H, W) values over each patch, patches moved by half one."""
+    return F.avg_pool2d(values, patch, stride=max(1, patch // 2)).flatten(1)
 
 
 def _missing_edges(drawn: torch.Tensor, images: torch.Tensor, patch: int) -> torch.Tensor:
@@ -171,11 +175,8 @@ def _missing_edges(drawn: torch.Tensor, images: torch.Tensor, patch: int) -> tor
     has; a cover near the table's colour has none where the drawing has the grid's lines, while
     its squared error stays within a varied task's thresholds (rope-box: 3% of half-covered
     views known without this term, each covered with a grey near the table's)."""
-    stride = max(1, patch // 2)
-    strength = [
-        F.avg_pool2d(_edge_strength(x), patch, stride=stride).flatten(1) for x in (drawn, images)
-    ]
-    return (strength[0] / (strength[1] + EDGE_FLOOR)).max(1).values
+    drawn_edges, image_edges = (_patches(_edge_strength(x), patch) for x in (drawn, images))
+    return (drawn_edges / (image_edges + EDGE_FLOOR)).max(1).values
 
 
 def _edge_strength(pixels: torch.Tensor) -> torch.Tensor:
