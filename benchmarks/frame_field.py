@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import mujoco
 import numpy as np
 
-from services.sim.appearance import _turn_quat
+from services.sim.appearance import turn_quat
 from services.sim.workcell import Pinhole
 from services.sim.worlds import make_world
 from shared.appearance import APPEARANCES
@@ -64,7 +64,7 @@ def in_frame(task: str, scales: list[float], turns: list[float], poses: int, see
             held = 0
             for _ in range(poses):
                 turned = np.zeros(9)
-                mujoco.mju_quat2Mat(turned, _turn_quat(*np.deg2rad(rng.uniform(-turn, turn, 3))))
+                mujoco.mju_quat2Mat(turned, turn_quat(*np.deg2rad(rng.uniform(-turn, turn, 3))))
                 axes = turned.reshape(3, 3).T @ nominal.axes
                 moved = Pinhole(nominal.position + rng.uniform(-SHIFT_M, SHIFT_M, 3), axes,
                                 nominal.focal, nominal.frame)  # fmt: skip

@@ -10,7 +10,7 @@ needs nothing but the training data; tasks defined by their data have no labels)
   in spread (the cloth model: 0.34 to 3.5), so one threshold for all let a rotated, fully
   folded cloth (a tight region) through;
 - the reconstruction error of the decoded mean over the whole image, the drawing scaled to the
-  image's exposure first (`_errors`);
+  image's exposure first (`errors_of`);
 - over its worst quarter-frame patch: a covered half, an upside-down shirt or a shifted
   frame is wrong in one place, which a whole-image mean dilutes into camera noise;
 - and the edges the drawing has that the image lacks, in its worst patch (`_missing_edges`):
@@ -48,7 +48,7 @@ from shared.plans import Match, UnknownImageError, refused_end
 FILE = "match.json"
 FORMAT = "lsr-match"
 VERSION = 5  # 4: the whole-image error after fitting the drawing's exposure; 5: edges
-ERRORS = ("whole image", "worst patch", "missing edges")  # what `_errors` measures, in order
+ERRORS = ("whole image", "worst patch", "missing edges")  # what `errors_of` measures, in order
 QUANTILE = 0.999
 FACTOR = 2.0
 EXPOSURE = (0.87, 1.15)  # a drawing's fitted gain: a camera's exposure, within 0.2 stops
@@ -105,7 +105,7 @@ def reconstruction_errors(vae: VAE, images: np.ndarray, latents: np.ndarray) -> 
     for start in range(0, len(images), BATCH):
         part = slice(start, start + BATCH)
         drawn = decode_latents(vae, np.asarray(latents[part], np.float32))
-        errors[part] = _errors(torch.from_numpy(drawn), torch.from_numpy(images[part]))
+        errors[part] = errors_of(torch.from_numpy(drawn), torch.from_numpy(images[part]))
     return errors
 
 
@@ -120,7 +120,7 @@ def look(vae: VAE, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pixels = torch.from_numpy(np.ascontiguousarray(images[part]))
         mu, _ = vae.encode(to_tensor(pixels).contiguous(memory_format=torch.channels_last))
         latents[part] = mu.numpy()
-        errors[part] = _errors(to_uint8(vae.decode(mu, channels_last=True)), pixels)
+        errors[part] = errors_of(to_uint8(vae.decode(mu, channels_last=True)), pixels)
     return latents, errors
 
 
@@ -148,7 +148,7 @@ def look_many(vae: VAE, *image_sets: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.concatenate([z for z, _ in done]), np.concatenate([e for _, e in done])
 
 
-def _errors(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:
+def errors_of(drawn: torch.Tensor, images: torch.Tensor) -> np.ndarray:
     """(B, 3): ERRORS of uint8 (B, H, W, 3) drawings of uint8 images.
 
     The whole-image error is taken after scaling the drawing by the gain that fits it best to

@@ -86,7 +86,7 @@ def _tilted(direction: np.ndarray, tilt: float, azimuth: float) -> np.ndarray:
     return np.cos(tilt) * d + np.sin(tilt) * side
 
 
-def _turn_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+def turn_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Rotation in a camera's own frame (x right, y up, looking along -z)."""
     out = np.array([1.0, 0, 0, 0])
     for axis, angle in ((2, roll), (0, pitch), (1, yaw)):
@@ -178,7 +178,7 @@ class SceneModder:
         m.cam_pos[self._cam][2] *= 1 + s.camera_lift  # the table's top is z = 0
         m.cam_pos[self._cam] += s.camera_shift
         quat = np.zeros(4)
-        mujoco.mju_mulQuat(quat, m.cam_quat[self._cam].copy(), _turn_quat(*s.camera_turn))
+        mujoco.mju_mulQuat(quat, m.cam_quat[self._cam].copy(), turn_quat(*s.camera_turn))
         m.cam_quat[self._cam] = quat
         mujoco.mj_camlight(m, self.data)  # the scene reads the posed camera and lights
         gain = np.asarray(s.table_gain)

@@ -12,10 +12,10 @@ from services.planner.knowing import (
     FACTOR,
     MIN_MEMBERS,
     MatchError,
-    _errors,
     calibrate,
     check_ends,
     connect,
+    errors_of,
     load_calibration,
     look,
     look_many,
@@ -264,7 +264,7 @@ def test_a_brighter_image_is_redrawn_as_well_but_a_dark_or_recoloured_one_is_not
     other = torch.from_numpy(rng.integers(40, 200, (3, 16, 16, 3), dtype=np.uint8))
     high = EXPOSURE[1]
     images = [drawn, scaled([high] * 3), scaled([0.2] * 3), scaled([1.0, 1.0, 0.7]), other]
-    whole = _errors(drawn.repeat(len(images), 1, 1, 1), torch.cat(images))[:, 0].reshape(-1, 3)
+    whole = errors_of(drawn.repeat(len(images), 1, 1, 1), torch.cat(images))[:, 0].reshape(-1, 3)
     assert whole[0].max() == 0
     assert whole[1].max() < 1e-5  # rounding only
     assert whole[2].min() > 0.01  # the gain stops at EXPOSURE[0]
@@ -281,7 +281,7 @@ def test_a_cover_of_the_tables_colour_lacks_the_edges_its_drawing_has():
     noisy = np.clip(drawn + rng.normal(0, 2.0, drawn.shape), 0, 255).astype(np.uint8)
     covered = noisy.copy()
     covered[:, 16:] = 150
-    errors = _errors(
+    errors = errors_of(
         torch.from_numpy(np.repeat(drawn, 2, 0)), torch.from_numpy(np.concatenate([noisy, covered]))
     )
     seen, hidden = errors[:, 2]

@@ -304,13 +304,13 @@ def _posed(world, turn_deg: tuple[float, float, float] = (0, 0, 0), lift: float 
     """The world's camera turned (roll, pitch, yaw) and raised by a share of its height."""
     import mujoco
 
-    from services.sim.appearance import _turn_quat
+    from services.sim.appearance import turn_quat
 
     model, camera = world.model, world.model.camera(world.camera.camera).id
     model.cam_pos[camera][2] *= 1 + lift
     quat = np.zeros(4)
     mujoco.mju_mulQuat(
-        quat, model.cam_quat[camera].copy(), _turn_quat(*(math.radians(t) for t in turn_deg))
+        quat, model.cam_quat[camera].copy(), turn_quat(*(math.radians(t) for t in turn_deg))
     )
     model.cam_quat[camera] = quat
     mujoco.mj_forward(model, world.data)
