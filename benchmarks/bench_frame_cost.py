@@ -16,7 +16,6 @@ Prints p50 / p99 in ms per task, side and codec.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 import time
@@ -24,9 +23,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from plan_requests import camera_bytes
 
 from services.sim.worlds import make_world
 from shared.images import ImageError, decode_image
@@ -46,14 +46,6 @@ def frames_of(task: str, count: int, seed: int) -> list[np.ndarray]:
     return frames
 
 
-def encoded(frame: np.ndarray, side: int, codec: str) -> bytes:
-    resized = frame if side == frame.shape[0] else cv2.resize(frame, (side, side), cv2.INTER_CUBIC)
-    buffer = io.BytesIO()
-    options = {"quality": 90} if codec == "JPEG" else {}
-    Image.fromarray(resized).save(buffer, format=codec, **options)
-    return buffer.getvalue()
-
-
 def ms(times: list[float]) -> dict[str, float]:
     return {
         "p50": round(1e3 * float(np.median(times)), 2),
@@ -62,7 +54,7 @@ def ms(times: list[float]) -> dict[str, float]:
 
 
 def measure(task: str, frames: list[np.ndarray], side: int, codec: str, rounds: int) -> dict:
-    data = [encoded(f, side, codec) for f in frames]
+    data = [camera_bytes(f, codec, side) for f in frames]
     registration = Registration(make_world(task, 64).task.workcell, 64)
     decode_s, register_s, decoded_side = [], [], None
     for _ in range(rounds):

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import base64
-import io
 import json
 import sys
 import tempfile
@@ -33,12 +32,14 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from plan_requests import camera_bytes  # noqa: E402
+
 from services.stack import Stack, StackConfig, free_port  # noqa: E402
+from shared.images import decode_image  # noqa: E402
 from shared.tasks import get_task  # noqa: E402
 
 TASK = "box_stacking"
@@ -87,12 +88,8 @@ def frames(url: str, count: int, side: int, seed: int) -> tuple[list[str], list[
             body = {"task": TASK, "state": state, "seed": i, "frame": True}
             reply = http.post("/render", json=body)
             reply.raise_for_status()
-            png = Image.open(io.BytesIO(base64.b64decode(reply.json()["image"])))
-            buffer = io.BytesIO()
-            png.convert("RGB").resize((side, side), Image.Resampling.BICUBIC).save(
-                buffer, format="JPEG", quality=90
-            )
-            out.append(base64.b64encode(buffer.getvalue()).decode())
+            frame = decode_image(base64.b64decode(reply.json()["image"]))
+            out.append(base64.b64encode(camera_bytes(frame, side=side)).decode())
             states.append(state)
     return out, states
 

@@ -4,11 +4,12 @@ the Server-Timing header read back."""
 from __future__ import annotations
 
 import base64
+import io
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
+from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -25,6 +26,19 @@ def percentiles(seconds: list[float]) -> dict[str, float]:
         "p99_ms": round(float(np.percentile(ms, 99)), 2),
         "mean_ms": round(float(ms.mean()), 2),
     }
+
+
+def camera_bytes(
+    frame: np.ndarray, codec: str = "JPEG", side: int | None = None, quality: int = 90
+) -> bytes:
+    """A frame as a camera would send it: `side` px a side (a higher-resolution camera: resized
+    bicubic), JPEG at `quality` or PNG."""
+    image = Image.fromarray(np.asarray(frame, np.uint8))
+    if side is not None and image.size != (side, side):
+        image = image.resize((side, side), Image.Resampling.BICUBIC)
+    buffer = io.BytesIO()
+    image.save(buffer, format=codec, **({"quality": quality} if codec == "JPEG" else {}))
+    return buffer.getvalue()
 
 
 def request_bodies(
@@ -54,10 +68,8 @@ def request_bodies(
                 if jpeg_quality is None:
                     images.append(png_b64(image))
                 else:
-                    jpeg = cv2.imencode(
-                        ".jpg", image[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
-                    )[1]
-                    images.append(base64.b64encode(jpeg.tobytes()).decode())
+                    jpeg = camera_bytes(image, quality=jpeg_quality)
+                    images.append(base64.b64encode(jpeg).decode())
             bodies.append(
                 {
                     "task": "box_stacking",
