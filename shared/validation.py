@@ -10,6 +10,7 @@ from shared.appearance import APPEARANCES, LEVELS
 from shared.images import ImageError, decode_image, image_size
 from shared.messages import WireArray
 from shared.tasks.base import InvalidStateError, Task
+from shared.workcell import FRAME_SIZE
 
 
 class FieldError(ValueError):
@@ -43,10 +44,9 @@ def parse_state(task: Task, field: str, obj: Any) -> Any:
 MAX_FRAME = 4096  # pixels a side of a camera frame
 MAX_FRAME_PIXELS = 4096 * 3072  # decoded pixels of one frame: a 12-megapixel camera's
 # A JPEG frame is decoded reduced (by 2, 4 or 8, in the decoder) down to this shorter side: the
-# simulated cell's own frames (4.0 times the canonical field of view, 720 px), so that the
-# markers and the table view keep at least the pixels they have there (512 served the cell's
-# 2.2-times, 400 px frames before 2026-12-06).
-FRAME_DETAIL = 720
+# simulated cell's own frames (FRAME_SIZE), so that the markers and the table view keep at
+# least the pixels they have there (512 served the 2.2-times, 400 px frames before 2026-12-06).
+FRAME_DETAIL = FRAME_SIZE
 
 
 def frame_size(field: str, data: bytes) -> tuple[int, int]:

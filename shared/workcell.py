@@ -28,6 +28,12 @@ CELLS = 4 + 2 * BORDER_CELLS  # cells across a printed marker of DICTIONARY
 
 LAYOUTS = Path(__file__).parent / "tasks" / "workcells"  # one JSON per built-in task
 
+# The frame's field of view over the canonical one (tangent of the half-angle): 111 degrees, so
+# that the markers and the view stay in it with the camera turned 20 degrees about every axis
+# (benchmarks/frame_field.py; at 2.2 a third of such frames lost their far markers).
+FRAME_SCALE = 4.0
+FRAME_SIZE = 720  # pixels: 0.70 frame pixels per canonical pixel at 256, as 400 at 2.2 gave
+
 
 class WorkcellError(ValueError):
     """A workcell description that cannot be used; the message names the field."""

@@ -17,13 +17,8 @@ import numpy as np
 from services.sim.rendering import OffscreenCamera, mujoco
 from shared.registration import Registration, RegistrationError, to_table_frame
 from shared.tasks.base import World
-from shared.workcell import CellCamera, Marker, Workcell, marker_cells
+from shared.workcell import FRAME_SCALE, FRAME_SIZE, CellCamera, Marker, Workcell, marker_cells
 
-# The frame's field of view over the canonical one (tangent of the half-angle): 111 degrees, so
-# that the markers and the view stay in it with the camera turned 20 degrees about every axis
-# (benchmarks/frame_field.py; at 2.2 a third of such frames lost their far markers).
-FRAME_SCALE = 4.0
-FRAME_SIZE = 720  # pixels: 0.70 frame pixels per canonical pixel at 256, as 400 at 2.2 gave
 WHITE = "0.93 0.93 0.93 1"
 BLACK = "0.03 0.03 0.03 1"
 BASE_M = 0.0006  # the printed sheet's thickness on the table
