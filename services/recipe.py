@@ -185,15 +185,16 @@ class Choices:
 
 def choose(
     data: Dataset, recipe: Recipe
-) -> tuple[TrainConfig, RoadmapConfig, APNTrainConfig, list[str]]:
-    """The three steps' settings for this dataset, and a line saying where each came from."""
+) -> tuple[TrainConfig | None, RoadmapConfig, APNTrainConfig, list[str]]:
+    """The three steps' settings for this dataset (no VAE's where one is given), and a line
+    saying where each came from."""
     settings = data.manifest.get("settings") or {}
     choices = Choices(data.task, settings)
     pick, why = choices.pick, choices.why
     dm = settings.get("d_m")
-    if recipe.vae is not None:  # nothing to train: its steps and d_m were chosen back then
+    vae: TrainConfig | None = None  # nothing to train: its steps and d_m were chosen back then
+    if recipe.vae is not None:
         why.append(f"vae {recipe.vae}: given, trained before (metric {recipe.metric})")
-        steps = DEFAULT_STEPS
     else:
         steps = pick(
             "vae steps",
@@ -206,14 +207,14 @@ def choose(
         why.append(f"d_m {TrainConfig(metric=recipe.metric, dm=dm).d_m(data.task)}: {source}")
         if recipe.augment:
             why.append("augment: the encoder saw each image under a drawn look (--augment)")
-    vae = TrainConfig(
-        metric=recipe.metric,
-        dm=dm,
-        steps=int(steps),
-        seed=recipe.seed,
-        device=recipe.device,
-        augment=recipe.augment,
-    )
+        vae = TrainConfig(
+            metric=recipe.metric,
+            dm=dm,
+            steps=int(steps),
+            seed=recipe.seed,
+            device=recipe.device,
+            augment=recipe.augment,
+        )
     metric = "l1" if recipe.metric == "none" else recipe.metric
     roadmap = choices.roadmap(metric, recipe.eps_rule, recipe.w_eps, recipe.min_samples)
     apn = APNTrainConfig(
@@ -263,7 +264,7 @@ def train_model(
     started = time.perf_counter()
     trained: float | None = None
     try:
-        if reused is None:
+        if vae_cfg is not None:  # else reused, checked above
             say(f"[1/3] VAE-{recipe.metric}, {vae_cfg.steps} steps")
             final = train_vae(data_dir, partial / "vae", vae_cfg, progress=progress)
         else:

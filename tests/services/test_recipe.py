@@ -154,6 +154,8 @@ def test_settings_come_from_the_dataset_and_say_why(tmp_path):
     assert not vae.augment and not any(line.startswith("augment") for line in why)
     vae, _, _, why = choose(load_dataset(declared), Recipe(augment=True))
     assert vae.augment and any(line.startswith("augment: ") for line in why)
+    vae, _, _, why = choose(load_dataset(declared), Recipe(vae=tmp_path / "v"))
+    assert vae is None and f"vae {tmp_path / 'v'}: given, trained before (metric l1)" in why
 
 
 def test_a_task_measured_settings_come_after_the_dataset_s(tmp_path):
