@@ -13,6 +13,14 @@ from PIL import Image, ImageDraw
 
 from shared.lru import LruCache
 
+# OpenCV's flags for a JPEG decoded reduced by 1, 2, 4 or 8 in the decoder (PNG: 1 only)
+_REDUCED = {
+    1: cv2.IMREAD_COLOR,
+    2: cv2.IMREAD_REDUCED_COLOR_2,
+    4: cv2.IMREAD_REDUCED_COLOR_4,
+    8: cv2.IMREAD_REDUCED_COLOR_8,
+}
+
 
 class ImageError(ValueError):
     """Bytes that are not a usable image; the message says why."""
@@ -76,6 +84,20 @@ def _opened(
         raise ImageError(f"image mode {img.mode} cannot be converted to RGB safely")
 
 
+def _opencv(data: bytes, img: Image.Image, full: tuple[int, int]) -> np.ndarray | None:
+    """An image opaque by its header through OpenCV's decoders, else None: the same pixels as
+    Pillow's (a JPEG reduced by the scale Pillow's draft chose), a quarter faster, and they let
+    go of the GIL, so a plan's two frames decode side by side. EXIF orientation is ignored, as
+    Pillow does: the frame is what the header's size says."""
+    reduced = _REDUCED.get(round(full[0] / img.size[0]))
+    if img.mode not in ("RGB", "L") or "transparency" in img.info or reduced is None:
+        return None
+    array = cv2.imdecode(np.frombuffer(data, np.uint8), reduced | cv2.IMREAD_IGNORE_ORIENTATION)
+    if array is None or array.dtype != np.uint8 or array.shape[1::-1] != img.size:
+        return None
+    return cv2.cvtColor(array, cv2.COLOR_BGR2RGB)  # (faster than _RGB's)
+
+
 def decode_image(
     data: bytes,
     size: int | None = None,
@@ -94,12 +116,11 @@ def decode_image(
     """
     try:
         with Image.open(io.BytesIO(data)) as img:
+            full = img.size
             _opened(img, size, at_least, max_side, max_pixels)
-            if img.format == "PNG" and img.mode in ("RGB", "L") and "transparency" not in img.info:
-                # opaque by its header: OpenCV's decoder, a quarter faster, the same pixels
-                array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-                if array is not None and array.dtype == np.uint8:
-                    return cv2.cvtColor(array, cv2.COLOR_BGR2RGB)  # (faster than _RGB's)
+            array = _opencv(data, img, full)
+            if array is not None:
+                return array
             if img.mode == "P" and "transparency" in img.info:
                 img = img.convert("RGBA")
             if img.mode == "RGBA" and img.getchannel("A").getextrema()[0] < 255:

@@ -46,3 +46,37 @@ def test_transparency_is_refused_but_opaque_alpha_converts():
     opaque = io.BytesIO()
     Image.fromarray(rgba).save(opaque, format="PNG")
     assert decode_image(opaque.getvalue(), 8)[0, 0].tolist() == [200, 0, 0]
+
+
+def _pillow(data: bytes, at_least: int) -> np.ndarray:
+    """What Pillow alone decodes: the reference OpenCV's faster path must equal."""
+    with Image.open(io.BytesIO(data)) as img:
+        w, h = img.size
+        scale = at_least / min(w, h)
+        if scale < 1:
+            img.draft(img.mode, (round(w * scale), round(h * scale)))
+        return np.asarray(img.convert("RGB"))
+
+
+@pytest.mark.parametrize("mode", ["RGB", "L"])
+@pytest.mark.parametrize("side", [40, 96, 200])
+def test_a_jpeg_decodes_reduced_to_pillow_s_pixels(mode, side):
+    rng = np.random.default_rng(side)
+    image = Image.fromarray(rng.integers(0, 256, (side, side + 8, 3), np.uint8)).convert(mode)
+    buffer = io.BytesIO()
+    image.save(buffer, format="JPEG", quality=90)
+    decoded = decode_image(buffer.getvalue(), at_least=24)
+    assert decoded.shape[2] == 3 and min(decoded.shape[:2]) >= 24
+    assert min(decoded.shape[:2]) < side or side == 40  # reduced in the decoder where it could
+    assert np.array_equal(decoded, _pillow(buffer.getvalue(), 24))
+
+
+def test_exif_orientation_is_not_applied():
+    image = np.zeros((32, 32, 3), np.uint8)  # square: turned, it would keep its shape
+    image[:, :8] = 255
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "rotate 90 degrees to view"
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="JPEG", quality=95, exif=exif)
+    decoded = decode_image(buffer.getvalue())
+    assert decoded[:, :4].mean() > 200 and decoded[:4, 12:].mean() < 50
