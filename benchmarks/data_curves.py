@@ -13,7 +13,10 @@ no-action pairs; 0, `lsr explore`'s default, keeps the names without `_l1`).
 Each point's record is kept in OUT/SIZE/seedS/record.json (what it holds is not run again:
 delete it to redo; a model that finished training before an interruption is kept too); data
 seed = --seed + size + 100000 x training seed, so every point has data of its own. Prints a row
-per point, writes OUT/RESULTS.json and, with --figure, the curves.
+per point, writes OUT/RESULTS.json, puts each finished point into the task's measured points in
+the repository (`--kept`, benchmarks/results/data_curves_TASK.json: a run folder does not
+outlive its machine) and, with --figure, draws the curves of every kept point (`--figure` with
+no `--sizes` draws them again).
 
 Usage:
   python benchmarks/data_curves.py --task box_stacking --sizes 250 500 1000 2500 5000 \
@@ -167,6 +170,16 @@ def train(model: Path, data: Path, seed: int, times: dict[str, Any], name: str) 
                 "--json"], times, name)  # fmt: skip
 
 
+def keep(path: Path, record: dict[str, Any]) -> None:
+    """`record` into the kept points at `path`, in place of one with its size and data seed."""
+    points = json.loads(path.read_text()) if path.exists() else []
+    key = (record["tuples"], record["data_seed"])
+    points = [p for p in points if (p["tuples"], p["data_seed"]) != key] + [record]
+    points.sort(key=lambda p: (p["tuples"], p["seed"], p["data_seed"]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(points, indent=1) + "\n")
+
+
 def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int | None = None):
     """(sizes, the mean over training seeds of record[kind][key] (its [index]) at each)."""
     sizes = sorted({r["tuples"] for r in points})
@@ -214,7 +227,7 @@ def plot(task: str, records: list[dict[str, Any]], path: Path, looks: int) -> No
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--task", default="box_stacking")
-    parser.add_argument("--sizes", type=int, nargs="+", required=True)
+    parser.add_argument("--sizes", type=int, nargs="*", default=[])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
     parser.add_argument("--seed", type=int, default=470000, help="data seeds start here")
     parser.add_argument("--appearance", default="camera")
@@ -238,10 +251,12 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("runs/curves"))
     parser.add_argument("--figure", type=Path)
+    parser.add_argument("--kept", type=Path, help="measured points (default: benchmarks/results)")
     args = parser.parse_args()
     args.out = args.out.resolve()
+    kept = args.kept or ROOT / "benchmarks" / "results" / f"data_curves_{args.task}.json"
     test = args.test or args.out / "test"
-    if not (test / "manifest.json").exists():
+    if args.sizes and not (test / "manifest.json").exists():
         lsr(["data", "generate", "--task", args.task, "--pairs", "1250", "--seed",
              str(args.seed - 1), "--appearance", args.appearance, "--look-pairs", "0",
              "--overwrite", "--out", str(test)], {}, "generate_test")  # fmt: skip
@@ -250,8 +265,10 @@ def main() -> None:
         for seed in args.seeds:
             print(f"{args.task}, {pairs} tuples, training seed {seed}", flush=True)
             records.append(run_point(args, pairs, seed, test))
+            keep(kept, records[-1])
             print(json.dumps({k: records[-1][k] for k in ("tuples", "seed", "defaults")}))
-    (args.out / "RESULTS.json").write_text(json.dumps(records, indent=1) + "\n")
+    if records:
+        (args.out / "RESULTS.json").write_text(json.dumps(records, indent=1) + "\n")
     print("tuples seed nodes  All(ref) known  apn%  loop%  train_min")
     for r in records:
         d = r["defaults"]
@@ -261,7 +278,7 @@ def main() -> None:
         minutes = r["times"]["train_model"]["wall"] / 60
         print(f"{r['tuples']:6d} {r['seed']:4d} {d['nodes']:5d} {text} {minutes:8.1f}")
     if args.figure:
-        plot(args.task, records, args.figure, args.looks)
+        plot(args.task, json.loads(kept.read_text()), args.figure, args.looks)
         print(f"figure: {args.figure}")
 
 
