@@ -105,6 +105,8 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
     record: dict[str, Any] = {"tuples": pairs, "seed": seed, "data_seed": data_seed}
     if path.exists():
         record = json.loads(path.read_text())
+    test_seed = json.loads((test / "manifest.json").read_text()).get("seed")
+    record |= {"appearance": args.appearance, "test_seed": test_seed}
     times: dict[str, Any] = record.setdefault("times", {})
     data, model = run / "train", run / "model"
 
@@ -171,13 +173,20 @@ def train(model: Path, data: Path, seed: int, times: dict[str, Any], name: str) 
 
 
 def keep(path: Path, record: dict[str, Any]) -> None:
-    """`record` into the kept points at `path`, in place of one with its size and data seed."""
+    """`record` into the kept points at `path`, in place of one with its size, data seed and
+    look; written whole to a temporary file first, so that a killed run leaves the old one."""
     points = json.loads(path.read_text()) if path.exists() else []
-    key = (record["tuples"], record["data_seed"])
-    points = [p for p in points if (p["tuples"], p["data_seed"]) != key] + [record]
+    key = _key(record)
+    points = [p for p in points if _key(p) != key] + [record]
     points.sort(key=lambda p: (p["tuples"], p["seed"], p["data_seed"]))
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(points, indent=1) + "\n")
+    partial = path.with_suffix(".partial")
+    partial.write_text(json.dumps(points, indent=1) + "\n")
+    partial.replace(path)
+
+
+def _key(record: dict[str, Any]) -> tuple[int, int, str]:
+    return record["tuples"], record["data_seed"], record.get("appearance", "camera")
 
 
 def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int | None = None):
@@ -278,6 +287,8 @@ def main() -> None:
         minutes = r["times"]["train_model"]["wall"] / 60
         print(f"{r['tuples']:6d} {r['seed']:4d} {d['nodes']:5d} {text} {minutes:8.1f}")
     if args.figure:
+        if not kept.exists():
+            sys.exit(f"{kept}: no measured points of {args.task} to draw (run some --sizes)")
         plot(args.task, json.loads(kept.read_text()), args.figure, args.looks)
         print(f"figure: {args.figure}")
 

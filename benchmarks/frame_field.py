@@ -7,7 +7,7 @@ registration needs and the whole canonical view, by field of view and turn. Geom
 Each pose turns the task's nominal camera about its own centre (roll, pitch and yaw each drawn
 within +-turn, as `bench_rotation.py` draws them) and moves it within the `camera`
 look's +-5 mm; the frame is the nominal camera's focal length with `scale` times its field of view
-(`services/sim/workcell.py`'s FRAME_SCALE). A pose counts when at least `min_markers` of the
+(`shared/workcell.py`'s FRAME_SCALE). A pose counts when at least `min_markers` of the
 layout's markers lie whole inside the frame and so do the four corners of the canonical view.
 Chose the cell's frame of 2026-12-06 (4.0: 111 degrees). It predicts what `bench_rotation.py`
 measured by rendering: at 2.2, box stacking 82.2% of frames at 10 degrees (measured 82.2%),

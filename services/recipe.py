@@ -245,7 +245,7 @@ def train_model(
         raise ValueError(f"{out}: exists and is not empty; choose another --out or --overwrite")
     data = load_dataset(data_dir)
     check_trainable(data, data_dir)
-    reused = reuse_vae(recipe.vae, data) if recipe.vae else None
+    reused = reuse_vae(recipe.vae, data) if recipe.vae is not None else None
     if reused is not None:  # the roadmap is built in the metric the VAE was trained with
         recipe = replace(recipe, metric=reused["train"]["metric"])
     vae_cfg, roadmap_cfg, apn_cfg, why = choose(data, recipe)

@@ -71,12 +71,22 @@ def test_a_jpeg_decodes_reduced_to_pillow_s_pixels(mode, side):
     assert np.array_equal(decoded, _pillow(buffer.getvalue(), 24))
 
 
-def test_exif_orientation_is_not_applied():
+@pytest.mark.parametrize("codec", ["JPEG", "PNG"])
+def test_exif_orientation_is_not_applied(codec):
     image = np.zeros((32, 32, 3), np.uint8)  # square: turned, it would keep its shape
     image[:, :8] = 255
     exif = Image.Exif()
     exif[0x0112] = 6  # "rotate 90 degrees to view"
     buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="JPEG", quality=95, exif=exif)
+    Image.fromarray(image).save(buffer, format=codec, exif=exif)
     decoded = decode_image(buffer.getvalue())
     assert decoded[:, :4].mean() > 200 and decoded[:4, 12:].mean() < 50
+
+
+@pytest.mark.parametrize("codec", ["JPEG", "PNG"])
+def test_a_truncated_frame_is_refused(codec):
+    rng = np.random.default_rng(0)
+    buffer = io.BytesIO()
+    Image.fromarray(rng.integers(0, 256, (96, 96, 3), np.uint8)).save(buffer, format=codec)
+    with pytest.raises(ImageError, match="truncated"):
+        decode_image(buffer.getvalue()[: len(buffer.getvalue()) // 2])
