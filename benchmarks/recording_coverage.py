@@ -2,11 +2,11 @@
 never show some view (a model cannot know a view it never saw), and the states shown with a
 move, over many seeds, in seconds.
 
-Walks the task's rules as `lsr data generate` walks its world: the same action flags
-(`action_flags`), the same balanced starts (`balanced_starts`), a random legal move per action
-tuple. No physics or rendering: the walks' moves are drawn from their own generator, so a seed
-here is not that seed's dataset, but the shares are those of the generator's episodes. Tasks
-whose states cannot be enumerated (rope-box) have no balanced starts and are not measured.
+Walks the task's rules as `lsr data generate` walks its world: the same episodes (its
+`plan_episodes`: action flags and balanced starts), a random legal move per action tuple. No
+physics or rendering: the walks' moves are drawn from their own generator, so a seed here is
+not that seed's dataset, but the shares are those of the generator's episodes. Tasks whose
+states cannot be enumerated (rope-box) have no balanced starts and are not measured.
 
     .venv/bin/python benchmarks/recording_coverage.py --task tshirt_folding --pairs 150 300 600 \
         --lengths 10 5 4 2 [--seeds 300]
@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.sim.datagen import GenerateConfig, action_flags, balanced_starts
+from services.sim.datagen import GenerateConfig, plan_episodes
 from services.sim.worlds import world_class
 from shared.tasks import get_task
 from shared.tasks.base import Task
@@ -30,21 +30,19 @@ from shared.tasks.base import Task
 
 def walk(task: Task, pairs: int, length: int, seed: int) -> tuple[set, set]:
     """(views shown, states shown with a move) of one recording."""
-    flags = action_flags(GenerateConfig(task=task.name, pairs=pairs, seed=seed))
-    begins = range(0, pairs, length)
-    firsts = balanced_starts(task, seed, [int(flags[s]) for s in begins])
+    cfg = GenerateConfig(task=task.name, pairs=pairs, seed=seed)
     states, rng = task.all_states(), np.random.default_rng([seed, 2])
     views, moved = set(), set()
-    for begin, first in zip(begins, firsts, strict=True):
+    for _, flags, first in plan_episodes(task, cfg, length):
         state = states[first]
-        for is_action in flags[begin : begin + length]:
-            views.add(task.view(state))
+        views.add(task.view(state))
+        for is_action in flags:
             if is_action:
                 legal = task.legal_actions(state)
                 after = task.apply(state, legal[int(rng.integers(len(legal)))])
                 moved |= {state, after}
                 state = after
-            views.add(task.view(state))
+                views.add(task.view(state))
     return views, moved
 
 

@@ -234,6 +234,21 @@ class Chunk(NamedTuple):
     refused: list[str]  # frames looked at again, and why
 
 
+def plan_episodes(task: Task, cfg: GenerateConfig, length: int) -> list[Episode]:
+    """The recording's episodes of `length` tuples: where each begins, its action flags and its
+    first state (balanced starts, or None: drawn)."""
+    flags = action_flags(cfg)
+    begins = range(0, cfg.pairs, length)
+    firsts: list[int | None] = (
+        balanced_starts(task, cfg.seed, [int(flags[s]) for s in begins])
+        if cfg.starts == "balanced"
+        else [None] * len(begins)
+    )
+    return [
+        (s, flags[s : s + length].tolist(), first) for s, first in zip(begins, firsts, strict=True)
+    ]
+
+
 def _make_chunk(job: tuple[int, list[Episode]]) -> Chunk:
     assert _worker is not None
     seed, episodes = job
@@ -268,17 +283,8 @@ def generate(
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
 
-    flags = action_flags(cfg)
     length = cfg.episode_length or world_class(cfg.task).episode_length
-    begins = range(0, cfg.pairs, length)
-    firsts: list[int | None] = (
-        balanced_starts(task, cfg.seed, [int(flags[s]) for s in begins])
-        if cfg.starts == "balanced"
-        else [None] * len(begins)
-    )
-    episodes: list[Episode] = [
-        (s, flags[s : s + length].tolist(), first) for s, first in zip(begins, firsts, strict=True)
-    ]
+    episodes = plan_episodes(task, cfg, length)
     per_job = max(1, 25 // length)  # about 25 tuples a job
     jobs = [(cfg.seed, episodes[i : i + per_job]) for i in range(0, len(episodes), per_job)]
     started = time.perf_counter()
@@ -324,7 +330,7 @@ def generate(
             pool.terminate()
     seconds = time.perf_counter() - started
 
-    n_action = int(flags.sum())
+    n_action = sum(sum(flags) for _, flags, _ in episodes)
     manifest = {
         "format": ds.FORMAT,
         "version": ds.VERSION,
