@@ -15,8 +15,9 @@ delete it to redo; a model that finished training before an interruption is kept
 seed = --seed + size + 100000 x training seed, so every point has data of its own. Prints a row
 per point, writes OUT/RESULTS.json, puts each finished point into the task's measured points in
 the repository (`--kept`, benchmarks/results/data_curves_TASK.json: a run folder does not
-outlive its machine) and, with --figure, draws the curves of every kept point (`--figure` with
-no `--sizes` draws them again).
+outlive its machine) and, with --figure, draws the curves of the kept points (at a size where
+some were recorded with today's episode length, only those; `--figure` with no `--sizes` draws
+them again).
 
 Usage:
   python benchmarks/data_curves.py --task box_stacking --sizes 250 500 1000 2500 5000 \
@@ -116,9 +117,12 @@ def run_point(args: argparse.Namespace, pairs: int, seed: int, test: Path) -> di
 
     if "defaults" not in record:
         if not (data / "manifest.json").exists():
+            length = ["--episode-length", str(args.episode_length)] if args.episode_length else []
             lsr(["data", "generate", "--task", args.task, "--pairs", str(pairs), "--seed",
                  str(data_seed), "--appearance", args.appearance, "--overwrite", "--out",
-                 str(data)], times, "generate")  # fmt: skip
+                 str(data), *length], times, "generate")  # fmt: skip
+        config = json.loads((data / "manifest.json").read_text())["config"]
+        record["episode_length"] = config["episode_length"]
         record["trained"] = train(model, data, seed, times, "train_model")
         record["defaults"] = measure(args, model, test, times, "")
         save()
@@ -173,20 +177,22 @@ def train(model: Path, data: Path, seed: int, times: dict[str, Any], name: str) 
 
 
 def keep(path: Path, record: dict[str, Any]) -> None:
-    """`record` into the kept points at `path`, in place of one with its size, data seed and
-    look; written whole to a temporary file first, so that a killed run leaves the old one."""
+    """`record` into the kept points at `path`, in place of one with its size, data seed, look
+    and episode length; written whole to a temporary file first, so that a killed run leaves
+    the old one."""
     points = json.loads(path.read_text()) if path.exists() else []
     key = _key(record)
     points = [p for p in points if _key(p) != key] + [record]
-    points.sort(key=lambda p: (p["tuples"], p["seed"], p["data_seed"]))
+    points.sort(key=lambda p: (p["tuples"], p["seed"], p["data_seed"], _key(p)[3] or 0))
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(".partial")
     partial.write_text(json.dumps(points, indent=1) + "\n")
     partial.replace(path)
 
 
-def _key(record: dict[str, Any]) -> tuple[int, int, str]:
-    return record["tuples"], record["data_seed"], record.get("appearance", "camera")
+def _key(record: dict[str, Any]) -> tuple[int, int, str, int | None]:
+    look = record.get("appearance", "camera")
+    return record["tuples"], record["data_seed"], look, record.get("episode_length")
 
 
 def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int | None = None):
@@ -198,6 +204,26 @@ def mean_by_size(points: list[dict[str, Any]], kind: str, key: str, index: int |
         values = [v if index is None else v[index] for v in values if v is not None]
         means.append(sum(values) / len(values) if values else float("nan"))
     return sizes, means
+
+
+def recorded_today(task: str, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The points whose recordings `lsr data generate` would make today (its episode length
+    for their size), at each size where there are any; elsewhere every point there is."""
+    from services.sim.datagen import episode_length
+    from services.sim.worlds import world_class
+    from shared.tasks import get_task
+
+    longest = world_class(task).episode_length
+    today = {
+        size: episode_length(get_task(task), longest, size)
+        for size in {r["tuples"] for r in records}
+    }
+    sizes = {r["tuples"] for r in records if r.get("episode_length") == today[r["tuples"]]}
+    return [
+        r
+        for r in records
+        if r["tuples"] not in sizes or r.get("episode_length") == today[r["tuples"]]
+    ]
 
 
 def plot(task: str, records: list[dict[str, Any]], path: Path, looks: int) -> None:
@@ -240,6 +266,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds")
     parser.add_argument("--seed", type=int, default=470000, help="data seeds start here")
     parser.add_argument("--appearance", default="camera")
+    parser.add_argument(
+        "--episode-length", type=int, help="lsr data generate's (default: its own for the size)"
+    )
     parser.add_argument("--test", type=Path, help="unseen test data (default: generated)")
     parser.add_argument("--test-pairs", type=int, default=1000)
     parser.add_argument("--closed-loop", type=int, default=100, help="closed-loop tasks (0: none)")
@@ -289,7 +318,8 @@ def main() -> None:
     if args.figure:
         if not kept.exists():
             sys.exit(f"{kept}: no measured points of {args.task} to draw (run some --sizes)")
-        plot(args.task, json.loads(kept.read_text()), args.figure, args.looks)
+        points = recorded_today(args.task, json.loads(kept.read_text()))
+        plot(args.task, points, args.figure, args.looks)
         print(f"figure: {args.figure}")
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.sim.datagen import GenerateConfig, plan_episodes
+from services.sim.datagen import GenerateConfig, episode_length, plan_episodes
 from services.sim.worlds import world_class
 from shared.tasks import get_task
 from shared.tasks.base import Task
@@ -50,23 +50,27 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="tshirt_folding")
     parser.add_argument("--pairs", type=int, nargs="+", default=[150, 300, 600])
-    parser.add_argument("--lengths", type=int, nargs="+", help="default: the world's, 5, 2")
+    parser.add_argument(
+        "--lengths", type=int, nargs="+", help="default: the world's, the default for the size, 2"
+    )
     parser.add_argument("--seeds", type=int, default=300)
     args = parser.parse_args()
     task = get_task(args.task)
     if task.all_states() is None:
         sys.exit(f"{args.task}: its states cannot be enumerated (no balanced starts)")
     views = {task.view(s) for s in task.all_states()}
-    default = world_class(args.task).episode_length
+    longest = world_class(args.task).episode_length
     print(f"{args.task}: {len(task.all_states())} states, {len(views)} views; {args.seeds} seeds")
     print("| tuples | episode length | recordings missing a view | states with a move (min) |")
     print("| --- | --- | --- | --- |")
     for pairs in args.pairs:
-        for length in args.lengths or sorted({default, 5, 2}, reverse=True):
+        default = episode_length(task, longest, pairs)
+        for length in args.lengths or sorted({longest, default, 2}, reverse=True):
             runs = [walk(task, pairs, length, seed) for seed in range(args.seeds)]
             missing = 100 * np.mean([len(shown) < len(views) for shown, _ in runs])
             moved = [len(m) for _, m in runs]
-            mark = " (the world's)" if length == default else ""
+            marks = [m for m, n in (("the world's", longest), ("default", default)) if length == n]
+            mark = f" ({', '.join(marks)})" if marks else ""
             print(
                 f"| {pairs} | {length}{mark} | {missing:.1f}% "
                 f"| {np.mean(moved):.1f} ({min(moved)}) |"

@@ -113,7 +113,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--episode-length",
         type=int,
         default=None,
-        help="tuples walked from one reset (default: the world's, 1 box stacking, 10 cloth)",
+        help="tuples walked from one reset (default: the world's, 1 box stacking, 10 cloth and "
+        "T-shirt, shortened where fewer would not go round every state twice)",
     )
     gen.add_argument(
         "--starts",

@@ -9,9 +9,11 @@ from services.sim.datagen import (
     GenerateConfig,
     action_flags,
     balanced_starts,
+    episode_length,
     generate,
     make_episode,
 )
+from services.sim.worlds import world_class
 from shared.dataset import DatasetError, load_dataset
 from shared.tasks import get_task
 
@@ -130,6 +132,22 @@ def test_action_share_is_exact():
 def test_bad_config(kw, message):
     with pytest.raises(ValueError, match=message):
         GenerateConfig(**kw)
+
+
+@pytest.mark.parametrize(
+    "task, pairs, length",
+    [
+        ("tshirt_folding", 150, 2),  # 32 states: each visited at least twice
+        ("tshirt_folding", 300, 4),
+        ("tshirt_folding", 2400, 10),  # the world's longest, as every shipped recording
+        ("cloth_folding", 100, 3),  # 16 states
+        ("cloth_folding", 20, 1),
+        ("box_stacking", 5000, 1),  # one tuple from each reset already
+    ],
+)
+def test_episodes_shorten_until_they_go_round_every_state_twice(task, pairs, length):
+    longest = world_class(task).episode_length
+    assert episode_length(get_task(task), longest, pairs) == length
 
 
 def test_cloth_dataset_walks_with_pixel_actions_in_int16(tmp_path):
