@@ -13,7 +13,7 @@ handler time (which holds the decoding and registration), the request sizes, and
 alone per frame in one process.
 
     .venv/bin/python benchmarks/bench_plan_frames.py [--rounds 6] [--per-round 100] [--pairs 50]
-        [--concurrency 1] [--appearance camera]
+        [--concurrency 1] [--appearance camera] [--side 720]
 """
 
 from __future__ import annotations
@@ -70,21 +70,22 @@ def main() -> None:
     parser.add_argument(
         "--appearance", default="camera", help="the look of the states' images (the model's)"
     )
+    parser.add_argument(
+        "--side", type=int, default=FRAME_SIZE, help="frames resized to this (a camera's pixels)"
+    )
     args = parser.parse_args()
     same = {"pairs": args.pairs, "size": 64, "seed": args.seed, "appearance": args.appearance}
+    frames = {**same, "frames": True, "side": None if args.side == FRAME_SIZE else args.side}
+    px = args.side
     kinds = {
         "views (64 px)": request_bodies(**same),
-        f"frames ({FRAME_SIZE} px)": request_bodies(**same, frames=True, fixed_camera=True),
-        f"frames ({FRAME_SIZE} px JPEG 90)": request_bodies(
-            **same, frames=True, jpeg_quality=90, fixed_camera=True
-        ),
-        f"frames, the camera moved ({FRAME_SIZE} px)": request_bodies(**same, frames=True),
-        f"frames, the camera moved ({FRAME_SIZE} px JPEG 90)": request_bodies(
-            **same, frames=True, jpeg_quality=90
-        ),
+        f"frames ({px} px)": request_bodies(**frames, fixed_camera=True),
+        f"frames ({px} px JPEG 90)": request_bodies(**frames, jpeg_quality=90, fixed_camera=True),
+        f"frames, the camera moved ({px} px)": request_bodies(**frames),
+        f"frames, the camera moved ({px} px JPEG 90)": request_bodies(**frames, jpeg_quality=90),
     }
     sizes = {k: int(np.median([len(b["start"]["image"]) for b in v])) for k, v in kinds.items()}
-    for kind in (f"frames ({FRAME_SIZE} px)", f"frames, the camera moved ({FRAME_SIZE} px)"):
+    for kind in (f"frames ({px} px)", f"frames, the camera moved ({px} px)"):
         print(f"registration alone, {kind}:", json.dumps(registration_alone(kinds[kind], 64)))
     runs: dict[str, list[dict]] = {kind: [] for kind in kinds}
     with tempfile.TemporaryDirectory() as logs:

@@ -231,24 +231,32 @@ def plot(task: str, records: list[dict[str, Any]], path: Path, looks: int) -> No
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(8, 4.2))
-    curves = (
-        ("table1_refusals_counted", 0, "o", "Table I All, refusals counted"),
-        ("known_images", None, "s", "% test images known"),
-        ("apn_right", None, "^", "APN right"),
-        ("closed_loop", None, "d", "closed loop"),
+    curves = (  # a colour per measure, a line per model kind
+        ("table1_refusals_counted", 0, "o", "C0", "Table I All, refusals counted"),
+        ("known_images", None, "s", "C1", "% test images known"),
+        ("apn_right", None, "^", "C2", "APN right"),
+        ("closed_loop", None, "d", "C3", "closed loop"),
     )
     explored, taught, retrained = kinds(looks)
     for kind, style in (("defaults", "-"), (explored, "--"), (taught, "-."), (retrained, ":")):
         points = [r for r in records if kind in r]
-        suffix = "" if kind == "defaults" else f" + {kind}"
-        for key, index, marker, label in curves if points else ():
+        if points:  # the legend: a line per kind, a colour per measure
+            ax.plot([], [], "k" + style, label="recorded, lsr train model" if kind == "defaults"
+                    else f"+ {kind}")  # fmt: skip
+        for key, index, marker, colour, _ in curves if points else ():
             sizes, means = mean_by_size(points, kind, key, index)
-            ax.plot(sizes, means, marker + style, label=label + suffix)
-    for label, xs, ys in FAMILY.get(task, []):
-        ax.plot(xs, ys, "*", markersize=11, label=label)
+            ax.plot(sizes, means, marker + style, color=colour)
+    for _, _, marker, colour, label in curves:
+        ax.plot([], [], marker, color=colour, label=label)
+    for i, (label, xs, ys) in enumerate(FAMILY.get(task, [])):
+        ax.plot(xs, ys, "*", color=f"C{4 + i}", markersize=11, label=label)
     ax.set_xscale("log")
+    ax.set_xticks(sorted({r["tuples"] for r in records}))
+    ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("recorded tuples")
     ax.set_ylabel("%")
     ax.set_ylim(0, 102)

@@ -49,12 +49,14 @@ def request_bodies(
     appearance: str | None = None,
     jpeg_quality: int | None = None,
     fixed_camera: bool = False,
+    side: int | None = None,
 ) -> list[dict]:
     """Image-to-image box-stacking /plan bodies between random states, 8 plans at most, at
     `appearance` (default: the task's own): the views a model is given (registered where the
     look is a camera's), or with `frames` the cell camera's whole frames (registered by the
     encoder); PNG, or JPEG at `jpeg_quality`. Each state is a new look (lights, camera pose:
-    a camera moved since the last frame), or with `fixed_camera` one look for all (a cell's)."""
+    a camera moved since the last frame), or with `fixed_camera` one look for all (a cell's);
+    frames resized to `side` px as a camera of that resolution would give them."""
     task = get_task("box_stacking")
     rng, looks = np.random.default_rng(seed), np.random.default_rng(seed + 1)  # same states
     bodies = []
@@ -65,11 +67,12 @@ def request_bodies(
             for state in (task.sample_state(rng), task.sample_state(rng)):
                 world.reset(state, np.random.default_rng(seed) if fixed_camera else looks)
                 image = observer.see()
-                if jpeg_quality is None:
+                if jpeg_quality is None and side is None:
                     images.append(png_b64(image))
                 else:
-                    jpeg = camera_bytes(image, quality=jpeg_quality)
-                    images.append(base64.b64encode(jpeg).decode())
+                    codec = "PNG" if jpeg_quality is None else "JPEG"
+                    data = camera_bytes(image, codec, side, quality=jpeg_quality or 90)
+                    images.append(base64.b64encode(data).decode())
             bodies.append(
                 {
                     "task": "box_stacking",
