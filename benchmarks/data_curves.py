@@ -210,14 +210,9 @@ def recorded_today(task: str, records: list[dict[str, Any]]) -> list[dict[str, A
     """The points whose recordings `lsr data generate` would make today (its episode length
     for their size), at each size where there are any; elsewhere every point there is."""
     from services.sim.datagen import episode_length
-    from services.sim.worlds import world_class
     from shared.tasks import get_task
 
-    longest = world_class(task).episode_length
-    today = {
-        size: episode_length(get_task(task), longest, size)
-        for size in {r["tuples"] for r in records}
-    }
+    today = {size: episode_length(get_task(task), size) for size in {r["tuples"] for r in records}}
     sizes = {r["tuples"] for r in records if r.get("episode_length") == today[r["tuples"]]}
     return [
         r

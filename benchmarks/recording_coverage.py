@@ -64,7 +64,7 @@ def main() -> None:
     print("| tuples | episode length | recordings missing a view | states with a move (min) |")
     print("| --- | --- | --- | --- |")
     for pairs in args.pairs:
-        default = episode_length(task, longest, pairs)
+        default = episode_length(task, pairs)
         for length in args.lengths or sorted({longest, default, 2}, reverse=True):
             runs = [walk(task, pairs, length, seed) for seed in range(args.seeds)]
             missing = 100 * np.mean([len(shown) < len(views) for shown, _ in runs])

@@ -223,11 +223,14 @@ def _init_worker(
     _worker = (task, Camera(world), look_pairs)
 
 
-def episode_length(task: Task, longest: int, pairs: int) -> int:
-    """Tuples walked from one reset: the world's `longest`, shortened so that the episodes go
+def episode_length(task: Task, pairs: int) -> int:
+    """Tuples walked from one reset: the world's longest, shortened so that the episodes go
     round every state at least twice. In episodes of 10, one 300-tuple T-shirt recording in six
     never showed one of its 25 views, and a model from it refused that view; in episodes of 4,
     none did (docs/findings/2026-12-07-a-view-never-recorded.md)."""
+    from services.sim.worlds import world_class
+
+    longest = world_class(task.name).episode_length
     states = task.all_states()
     if longest <= 1 or not states:
         return longest
@@ -288,15 +291,12 @@ def generate(
         raise FileExistsError(f"{out} exists and is not empty; pass overwrite to replace it")
     task = get_task(cfg.task)  # fails fast on an unknown task
     spec = task.spec
-    from services.sim.worlds import world_class
 
     partial = out.with_name(f".{out.name}.partial")
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
 
-    length = cfg.episode_length or episode_length(
-        task, world_class(cfg.task).episode_length, cfg.pairs
-    )
+    length = cfg.episode_length or episode_length(task, cfg.pairs)
     episodes = plan_episodes(task, cfg, length)
     per_job = max(1, 25 // length)  # about 25 tuples a job
     jobs = [(cfg.seed, episodes[i : i + per_job]) for i in range(0, len(episodes), per_job)]

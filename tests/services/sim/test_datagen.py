@@ -13,7 +13,6 @@ from services.sim.datagen import (
     generate,
     make_episode,
 )
-from services.sim.worlds import world_class
 from shared.dataset import DatasetError, load_dataset
 from shared.tasks import get_task
 
@@ -146,8 +145,7 @@ def test_bad_config(kw, message):
     ],
 )
 def test_episodes_shorten_until_they_go_round_every_state_twice(task, pairs, length):
-    longest = world_class(task).episode_length
-    assert episode_length(get_task(task), longest, pairs) == length
+    assert episode_length(get_task(task), pairs) == length
 
 
 def test_cloth_dataset_walks_with_pixel_actions_in_int16(tmp_path):
