@@ -155,6 +155,24 @@ def test_exploration_heads_for_neither_its_twin_nor_a_neighbour():
     assert picked == {3, 4}
 
 
+def test_exploration_heads_for_thin_nodes_more_often():
+    from services.sim.explore import _target
+
+    # 0 alone; the rest in other components: 1 with no edge, 2 with one, 3 with three
+    nodes = np.array([[0, 0], [1, 0], [0, 1], [-1, 0], [5, 5], [6, 6]], np.float32)
+    edges = np.array([[2, 3], [3, 4], [3, 5]], np.int64)
+    roadmap = Roadmap(
+        config=RoadmapConfig(metric="l1"), epsilon=0.1, mu0=0.5, sigma0=0.5, nodes=nodes,
+        node_sizes=np.full(6, 3, np.int64), edges=edges, edge_weights=np.ones(3, np.int64),
+        point_node=np.repeat(np.arange(6, dtype=np.int64), 3), twins=np.zeros((0, 2), np.int64),
+    )  # fmt: skip
+    component = np.array([0, 1, 2, 2, 2, 2])
+    rng = np.random.default_rng(0)
+    picked = [_target(roadmap, component, nodes[0], 0, 1.0, rng) for _ in range(600)]
+    counts = np.bincount(picked, minlength=6)
+    assert counts[1] > counts[2] > counts[3] > 0  # weights 1, 1/4, 1/16 (4 and 5: 1/4 each)
+
+
 def test_members_are_encoded_only_from_the_data_the_roadmap_was_built_on(
     model, tiny_model, tmp_path
 ):
