@@ -146,9 +146,12 @@ def test_grow_roadmap_makes_a_new_version_from_recorded_experience(tiny_model, t
     shutil.copytree(tiny_model[0], explored)
     shutil.copytree(tiny_model[0], model)
     experience = tmp_path / "experience"
-    # (a seed whose 20 tries record some: the tiny model's proposals are mostly refused)
-    cfg = ExploreConfig(actions=20, seed=0, grow_every=10, chain=2, seen_share=0.8)
-    explore(explored, cfg, experience, progress=False)  # the simulator's experience, recorded
+    # the simulator's experience, recorded: the first seed whose 20 tries record some (the tiny
+    # model's proposals are mostly refused, and an explorer's choices change what each draws)
+    for seed in range(10):
+        cfg = ExploreConfig(actions=20, seed=seed, grow_every=10, chain=2, seen_share=0.8)
+        if explore(explored, cfg, experience, progress=False)["recorded"]:
+            break
     output = run("grow_roadmap.py", "--model", str(model), "--experience", str(experience))
     report = json.loads(output.splitlines()[0])
     assert report["version"] == "v2"
