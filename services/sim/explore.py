@@ -105,7 +105,7 @@ def _target(
     gaps = pair_distances(roadmap.nodes[others], z, roadmap.config.metric)
     near = others[np.argsort(np.abs(gaps - step))[:NEAR]]
     # Thin ones first: a node with few edges is a state seen but hardly moved from or to
-    # (box stacking at 300 tuples + 2000 actions: 283 states joined by moves, against 280
+    # (box stacking at 300 tuples + 2000 actions, two seeds: 283 states joined by moves, 280
     # drawn alike; the rest are states no image showed, which no target names).
     degree = np.bincount(roadmap.edges.ravel(), minlength=roadmap.num_nodes)[near]
     weight = 1.0 / (1.0 + degree) ** 2
