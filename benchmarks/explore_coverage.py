@@ -29,30 +29,27 @@ def coverage(folders: list[Path]) -> dict[str, float | int | None]:
     if len(tasks) != 1:
         raise SystemExit(f"the folders hold tuples of several tasks: {sorted(tasks)}")
     task = get_task(tasks.pop())
-    index: dict[bytes, int] = {}
-    images: list[int] = []
-    moves: list[tuple[int, int]] = []
+    firsts, seconds, moves = [], [], []
     for folder in folders:
         for shard in iter_shards(folder, verify=False):
-            for s1, s2, a in zip(shard["state1"], shard["state2"], shard["a"], strict=True):
-                pair = []
-                for state in (s1, s2):
-                    key = index.setdefault(state.tobytes(), len(index))
-                    images += [0] * (len(index) - len(images))
-                    images[key] += 1
-                    pair.append(key)
-                if a:
-                    moves.append((pair[0], pair[1]))
-    edges = np.array(moves, np.int64).reshape(-1, 2)
+            firsts.append(shard["state1"].reshape(len(shard["a"]), -1))
+            seconds.append(shard["state2"].reshape(len(shard["a"]), -1))
+            moves.append(shard["a"].astype(bool))
+    tuples = len(np.concatenate(moves))
+    states, ids, images = np.unique(
+        np.concatenate(firsts + seconds), axis=0, return_inverse=True, return_counts=True
+    )
+    pairs = ids.reshape(2, tuples).T  # (first, second) state of each tuple
+    edges = pairs[np.concatenate(moves)]
     moved = np.unique(edges)
-    group = node_components(len(index), edges)
+    group = node_components(len(states), edges)
     largest = int(np.bincount(group[moved]).max()) if len(moved) else 0
     every = task.all_states()
     return {
         "states": len(every) if every is not None else None,
-        "seen": len(index),
+        "seen": len(states),
         "with_a_move": len(moved),
-        "with_a_move_and_3_images": int((np.array(images)[moved] >= 3).sum()),
+        "with_a_move_and_3_images": int((images[moved] >= 3).sum()),
         "largest_joined_group": largest,
     }
 

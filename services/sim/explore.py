@@ -84,7 +84,7 @@ def spec_action(spec: ArraySpec, rng: np.random.Generator) -> np.ndarray:
 
 def _target(
     roadmap: Roadmap,
-    component: np.ndarray,
+    graph: tuple[np.ndarray, np.ndarray],
     z: np.ndarray,
     node: int,
     step: float,
@@ -95,7 +95,9 @@ def _target(
     where there are any, else among those without an edge from here. An action-shaped latent
     space puts the states one action apart about that far apart, so the APN's action towards
     such a node is often one that can be done (box stacking at 500 tuples: 39% of proposals
-    legal, against 7% towards the nearest nodes). `component`: each node's, as shape_of gives it."""
+    legal, against 7% towards the nearest nodes). `graph`: each node's component and degree, as
+    shape_of gives them."""
+    component, degree = graph
     others = np.flatnonzero(component != component[node])
     if not len(others):  # not this node, its twins or its neighbours' groups
         group = roadmap.twin_group
@@ -107,8 +109,7 @@ def _target(
     # Thin ones first: a node with few edges is a state seen but hardly moved from or to
     # (box stacking at 300 tuples + 2000 actions, two seeds: 283 states joined by moves, 280
     # drawn alike; the rest are states no image showed, which no target names).
-    degree = np.bincount(roadmap.edges.ravel(), minlength=roadmap.num_nodes)[near]
-    weight = 1.0 / (1.0 + degree) ** 2
+    weight = 1.0 / (1.0 + degree[near]) ** 2
     return int(rng.choice(near, p=weight / weight.sum()))
 
 
@@ -149,12 +150,12 @@ def explore(
     new: Members | None = None  # what was seen, encoded at the last growth
     rows: list[tuple] = []  # what was seen since
     tried = refused = grown_at = 0
-    component = shape_of(roadmap)[0]
+    graph = shape_of(roadmap)  # (component, degree) of each node
     sources = {"apn": 0, "seen": 0, "spec": 0}
     seen = members.actions[members.a == 1]
     step = action_step(members, roadmap.config.metric)
     shape = {"nodes": roadmap.num_nodes, "edges": len(roadmap.edges)}
-    shape["components"] = int(shape_of(roadmap)[0].max() + 1)
+    shape["components"] = int(graph[0].max() + 1)
     bar = tqdm(total=cfg.actions, desc="explore", unit="action", disable=not progress)
     bar.set_postfix(shape)
     appearance = trained_appearance(config)
@@ -185,7 +186,7 @@ def explore(
                         else spec_action(task.spec.action, rng)
                     )
                 else:
-                    there = _target(roadmap, component, z, here, step, rng)
+                    there = _target(roadmap, graph, z, here, step, rng)
                     arrays, _ = propose(planner.apn, z[None], roadmap.nodes[there][None])
                     source, array = "apn", arrays[0]
                 sources[source] += 1
@@ -223,9 +224,9 @@ def explore(
                     new, rows = fresh if new is None else new + fresh, []
                     roadmap, _, everything, _ = grow(base, calibration, members, new, task)
                     node_states = _node_states(task, roadmap, everything)
-                    component = shape_of(roadmap)[0]
+                    graph = shape_of(roadmap)
                     shape = {"nodes": roadmap.num_nodes, "edges": len(roadmap.edges)}
-                    shape["components"] = int(component.max() + 1)
+                    shape["components"] = int(graph[0].max() + 1)
                     bar.set_postfix(shape)
     bar.close()
     record.flush()

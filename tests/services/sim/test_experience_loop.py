@@ -140,7 +140,7 @@ def test_an_illegal_action_is_not_applied(small_world):
 
 
 def test_exploration_heads_for_neither_its_twin_nor_a_neighbour():
-    from services.sim.explore import _target
+    from services.sim.explore import _target, shape_of
 
     # 1 - 0 ~ 1 twins - 2 - 3 - 4 on a line, one component: only 3 and 4 are worth a try
     nodes = np.array([[0, 0], [1, 0], [2, 0], [3, 0], [4, 0]], np.float32)
@@ -151,12 +151,12 @@ def test_exploration_heads_for_neither_its_twin_nor_a_neighbour():
         point_node=np.repeat(np.arange(5, dtype=np.int64), 3), twins=np.array([[0, 1]]),
     )  # fmt: skip
     rng = np.random.default_rng(0)
-    picked = {_target(roadmap, np.zeros(5, int), nodes[0], 0, 1.0, rng) for _ in range(40)}
+    picked = {_target(roadmap, shape_of(roadmap), nodes[0], 0, 1.0, rng) for _ in range(40)}
     assert picked == {3, 4}
 
 
 def test_exploration_heads_for_thin_nodes_more_often():
-    from services.sim.explore import _target
+    from services.sim.explore import _target, shape_of
 
     # 0 alone; the rest in other components: 1 with no edge, 2 with one, 3 with three
     nodes = np.array([[0, 0], [1, 0], [0, 1], [-1, 0], [5, 5], [6, 6]], np.float32)
@@ -166,9 +166,8 @@ def test_exploration_heads_for_thin_nodes_more_often():
         node_sizes=np.full(6, 3, np.int64), edges=edges, edge_weights=np.ones(3, np.int64),
         point_node=np.repeat(np.arange(6, dtype=np.int64), 3), twins=np.zeros((0, 2), np.int64),
     )  # fmt: skip
-    component = np.array([0, 1, 2, 2, 2, 2])
     rng = np.random.default_rng(0)
-    picked = [_target(roadmap, component, nodes[0], 0, 1.0, rng) for _ in range(600)]
+    picked = [_target(roadmap, shape_of(roadmap), nodes[0], 0, 1.0, rng) for _ in range(600)]
     counts = np.bincount(picked, minlength=6)
     assert counts[1] > counts[2] > counts[3] > 0  # weights 1, 1/4, 1/16 (4 and 5: 1/4 each)
 
