@@ -276,6 +276,24 @@ def test_a_moved_marker_gives_an_implausible_homography(box_frame):
         registration.register(moved)
 
 
+def test_a_corner_off_is_left_out_of_the_fit(box_frame):
+    frame, _ = box_frame
+    registration = Registration(get_task("box_stacking").workcell, 64)
+    found = registration.detect(frame)
+    clean, _ = registration._fit(found)
+    off = dict(found)  # marker 2's first corner 4 canonical px off: beyond RANSAC's 3
+    off[2] = found[2].copy()
+    off[2][0] = _apply(np.linalg.inv(clean), _apply(clean, found[2][:1]) + np.array([4.0, 0]))[0]
+    homography, _ = registration._fit(off)
+    rest = np.delete(np.concatenate([found[i] for i in sorted(found)]), 8, axis=0)
+    assert np.abs(_apply(homography, rest) - _apply(clean, rest)).max() < 0.2
+    pulled, _ = cv2.findHomography(
+        np.concatenate([off[i] for i in sorted(off)]),
+        np.concatenate([registration._corners[i] for i in sorted(off)]),
+    )
+    assert np.abs(_apply(pulled, rest) - _apply(clean, rest)).max() > 0.2  # all corners fit
+
+
 @pytest.mark.parametrize(("appearance", "register"), [("clean", True), ("camera", True),
                                                       ("clean", False)])  # fmt: skip
 def test_an_observer_gives_what_a_model_is_given(appearance, register):
