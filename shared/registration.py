@@ -450,14 +450,13 @@ def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     h, w = image.shape[:2]
     x = np.clip(points[:, 0], 0, w - 1.001)
     y = np.clip(points[:, 1], 0, h - 1.001)
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-
-    def pixel(r: np.ndarray, c: np.ndarray) -> np.ndarray:  # only these converted, not the frame
-        return image[r, c].astype(np.float64)
-
-    top = pixel(y0, x0) * (1 - fx) + pixel(y0, x0 + 1) * fx
-    bottom = pixel(y0 + 1, x0) * (1 - fx) + pixel(y0 + 1, x0 + 1) * fx
+    at = y0 * w + x0  # the four neighbours in one gather; only these converted, not the frame
+    near = image.reshape(h * w, -1)[np.concatenate([at, at + 1, at + w, at + w + 1])]
+    p00, p01, p10, p11 = near.astype(np.float64).reshape(4, len(at), -1)
+    top = p00 * (1 - fx) + p01 * fx
+    bottom = p10 * (1 - fx) + p11 * fx
     return top * (1 - fy) + bottom * fy
 
 
