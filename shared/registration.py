@@ -277,7 +277,7 @@ class Registration:
         # A least-squares fit of every corner costs half as much as RANSAC and is its fit where
         # RANSAC keeps every corner (both end in one refinement over the inliers). Where its
         # four-point guess left one out, they differed by up to 0.45 frame px (a fifth of box
-        # frames), the least-squares one nearer the truth in 12% of them, farther in 5%.
+        # frames): the least-squares one nearer the truth in 12% of all frames, farther in 5%.
         # One corner 2-3 px off, which RANSAC leaves out, drew it 4.4 px from the truth on a
         # box frame (tried): so RANSAC where any corner lies more than LEAST_SQUARES_PX off.
         homography, _ = cv2.findHomography(source, target, 0)
