@@ -274,12 +274,11 @@ class Registration:
         ids = sorted(found)
         source = np.concatenate([found[i] for i in ids])
         target = np.concatenate([self._corners[i] for i in ids])
-        # A least-squares fit of every corner costs half as much as RANSAC and is its fit where
-        # RANSAC keeps every corner (both end in one refinement over the inliers). Where its
-        # four-point guess left one out, they differed by up to 0.45 frame px (a fifth of box
-        # frames): the least-squares one nearer the truth in 12% of all frames, farther in 5%.
-        # One corner 2-3 px off, which RANSAC leaves out, drew it 4.4 px from the truth on a
-        # box frame (tried): so RANSAC where any corner lies more than LEAST_SQUARES_PX off.
+        # Least squares over every corner costs half of RANSAC, and is kept where every corner
+        # lies within LEAST_SQUARES_PX of it: RANSAC keeping them all ends in the same fit, and
+        # leaving one out it lay up to 0.45 frame px away, farther from the truth more often
+        # than not (docs/camera.md, Cost). A corner 2-3 px off drew least squares 4.4 px from
+        # the truth on a box frame: RANSAC leaves such a corner out.
         homography, _ = cv2.findHomography(source, target, 0)
         if homography is None or _far(homography, source, target) > LEAST_SQUARES_PX:
             homography, _ = cv2.findHomography(source, target, cv2.RANSAC, 3.0)
