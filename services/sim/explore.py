@@ -67,9 +67,10 @@ def shape_of(roadmap: Roadmap) -> tuple[np.ndarray, np.ndarray]:
     return roadmap.component, np.bincount(roadmap.edges.ravel(), minlength=roadmap.num_nodes)
 
 
-def thinness(roadmap: Roadmap) -> np.ndarray:
-    """How much each node asks to be explored from: small components and few edges first."""
-    component, degree = shape_of(roadmap)
+def thinness(graph: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """How much each node asks to be explored from: small components and few edges first.
+    `graph`: each node's component and degree, as shape_of gives them."""
+    component, degree = graph
     size = np.bincount(component)[component]
     weight = 1.0 / ((1.0 + degree) * size)
     return weight / weight.sum()
@@ -162,7 +163,7 @@ def explore(
     with make_world(task.name, size, appearance=appearance) as world:
         observer = Observer(world)  # images as the model is given them: registered
         while tried < cfg.actions:
-            startable = thinness(roadmap) * np.array([s is not None for s in node_states])
+            startable = thinness(graph) * np.array([s is not None for s in node_states])
             if not startable.sum():
                 raise ValueError(f"{model_dir}: no roadmap node has a recorded state to start at")
             start = int(rng.choice(roadmap.num_nodes, p=startable / startable.sum()))

@@ -98,3 +98,10 @@ def tiny_cloth_model(tmp_path_factory):
     for args in steps:
         assert main(args) == 0
     return model, data
+
+
+@pytest.fixture(scope="session")
+def patient() -> dict[str, str]:
+    """A stack's environment with deadlines long enough for a machine busy with other work:
+    for tests that check what a stack does, not how fast (the deadlines' own tests set theirs)."""
+    return {"LSR_DEADLINE_S": "60", "LSR_EXECUTE_STEP_S": "30"}

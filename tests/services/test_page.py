@@ -28,8 +28,6 @@ from services.stack import Stack, StackConfig, free_port
 from shared.tasks import get_task
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "box_stacking"
-# Deadlines long enough for a machine busy with other work (the deadlines' own tests use theirs)
-PATIENT = {"LSR_DEADLINE_S": "60", "LSR_EXECUTE_STEP_S": "30"}
 CLOTH_MODEL = MODEL.parent / "cloth_folding"
 TASK = get_task("box_stacking")
 CLOTH = get_task("cloth_folding")
@@ -49,13 +47,13 @@ def chromium() -> str:
 
 
 @pytest.fixture(scope="module")
-def stack(tmp_path_factory) -> Iterator[Stack]:
+def stack(tmp_path_factory, patient) -> Iterator[Stack]:
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
         models=(MODEL, CLOTH_MODEL, ROPE_MODEL),
         log_dir=tmp_path_factory.mktemp("page-stack-logs"),
-        env=PATIENT,
+        env=patient,
     )
     with Stack(config) as running:
         running.start()
