@@ -95,18 +95,32 @@ def action_flags(cfg: GenerateConfig) -> np.ndarray:
 
 def balanced_starts(task: Task, seed: int, first_flags: list[int]) -> list[int | None]:
     """Index into task.all_states() of each episode's first state, by the episode's first flag:
-    the action episodes go round all states in seeded orders, and so do the no-action ones.
+    the action episodes go round all states in seeded orders, and so do the no-action ones,
+    each of their rounds taking first the states started from least so far, the action
+    episodes' starts counted: a recording with as many episodes as states starts once from
+    every state (300 box-stacking tuples showed 252 of the 288 states when the two went round
+    apart, and an explorer starts only from states a recording showed).
     None for every episode when the task cannot enumerate its states (then they are drawn)."""
     states = task.all_states()
     if states is None:
         return [None] * len(first_flags)
     rng = np.random.default_rng([seed, 1])  # a stream of its own: tuples keep theirs
-    orders: dict[int, list[int]] = {0: [], 1: []}
-    out: list[int | None] = []
-    for flag in first_flags:
-        if not orders[flag]:
-            orders[flag] = rng.permutation(len(states)).tolist()[::-1]
-        out.append(orders[flag].pop())
+    count = np.zeros(len(states), dtype=np.int64)
+    moves = _rounds(rng, count, sum(1 for flag in first_flags if flag))
+    stills = _rounds(rng, count, len(first_flags) - len(moves))
+    orders = {1: moves[::-1], 0: stills[::-1]}
+    return [orders[1 if flag else 0].pop() for flag in first_flags]
+
+
+def _rounds(rng: np.random.Generator, count: np.ndarray, episodes: int) -> list[int]:
+    """`episodes` starts going round the states in seeded orders, the states started from
+    least so far (`count`, updated) first in each round."""
+    out: list[int] = []
+    while len(out) < episodes:
+        order = rng.permutation(len(count))
+        take = order[np.argsort(count[order], kind="stable")][: episodes - len(out)]
+        count[take] += 1
+        out.extend(take.tolist())
     return out
 
 

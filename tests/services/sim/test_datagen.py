@@ -63,6 +63,15 @@ def test_balanced_starts_go_round_every_state():
     assert starts == balanced_starts(task, 3, flags) != balanced_starts(task, 4, flags)
 
 
+def test_balanced_starts_show_every_state_once_there_are_as_many_episodes():
+    task = get_task("box_stacking")
+    flags = action_flags(GenerateConfig(pairs=300, seed=470300)).tolist()  # 195 action episodes
+    counts = np.bincount(balanced_starts(task, 470300, flags), minlength=288)
+    assert counts.min() == 1 and counts.max() == 2  # apart, 60 were never started from
+    moves = [s for s, f in zip(balanced_starts(task, 470300, flags), flags, strict=True) if f]
+    assert len(set(moves)) == len(moves)  # the action episodes still go round first
+
+
 def test_balanced_dataset_starts_where_it_says(tmp_path):
     _generate(tmp_path / "b", pairs=12)
     _generate(tmp_path / "r", pairs=12, starts="random")
