@@ -280,11 +280,15 @@ class Registration:
         # than not (docs/camera.md, Cost). A corner 2-3 px off drew least squares 4.4 px from
         # the truth on a box frame: RANSAC leaves such a corner out.
         homography, _ = cv2.findHomography(source, target, 0)
-        if homography is None or _far(homography, source, target) > LEAST_SQUARES_PX:
+        residuals = None if homography is None else _apply(homography, source) - target
+        if residuals is None or np.linalg.norm(residuals, axis=1).max() > LEAST_SQUARES_PX:
             homography, _ = cv2.findHomography(source, target, cv2.RANSAC, 3.0)
-        if homography is None:
-            raise RegistrationError(f"{NOT_FOUND}: they give no homography (degenerate corners)")
-        return homography, _rms(_apply(homography, source) - target)
+            if homography is None:
+                raise RegistrationError(
+                    f"{NOT_FOUND}: they give no homography (degenerate corners)"
+                )
+            residuals = _apply(homography, source) - target
+        return homography, _rms(residuals)
 
     def register(self, frame: np.ndarray) -> Registered:
         """`frame` (uint8 (H, W, 3), any size) as the canonical view at the model's size."""
@@ -435,11 +439,6 @@ def _scale(homography: np.ndarray, at: np.ndarray) -> float:
     x, y = mapped[:, 0], mapped[:, 1]
     area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
     return float(np.sqrt(area))
-
-
-def _far(homography: np.ndarray, source: np.ndarray, target: np.ndarray) -> float:
-    """The farthest any `source` point lies from its `target` through `homography`."""
-    return float(np.max(np.linalg.norm(_apply(homography, source) - target, axis=1)))
 
 
 def _rms(residuals: np.ndarray) -> float:
