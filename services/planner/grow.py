@@ -352,7 +352,10 @@ def _representative(points: np.ndarray, ids: np.ndarray, metric: str) -> int:
     return int(ids[np.argmin(pair_distances(points[ids], mean, metric))])
 
 
-OWN_NODE_MIN = 0.9  # share of built images nearest their own node, for data to be the roadmap's
+# Share of built images nearest their own node, for data to be the roadmap's: all of them for
+# every shipped model, 0.6% for other box data; a test's one-epoch VAE, whose nodes overlap,
+# puts 75% of its own images there and 7% of other data's.
+OWN_NODE_MIN = 0.5
 
 
 def load_members(

@@ -68,12 +68,26 @@ def shape_of(roadmap: Roadmap) -> tuple[np.ndarray, np.ndarray]:
 
 
 def thinness(graph: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """How much each node asks to be explored from: small components and few edges first.
-    `graph`: each node's component and degree, as shape_of gives them."""
+    """How much each node asks to be explored from: small components and few edges first (1
+    for a node alone). `graph`: each node's component and degree, as shape_of gives them."""
     component, degree = graph
     size = np.bincount(component)[component]
-    weight = 1.0 / ((1.0 + degree) * size)
-    return weight / weight.sum()
+    return 1.0 / ((1.0 + degree) * size)
+
+
+def starts(
+    task: Task, roadmap: Roadmap, graph: tuple[np.ndarray, np.ndarray], members: Members
+) -> tuple[list[Any], np.ndarray]:
+    """Where the explorer may start (recorded states) and how much each asks to be explored
+    from: each node by its thinness, and each recorded image that no node holds as a node
+    alone. A state seen only standing still (a no-action pair, no move) is pruned from the
+    roadmap, so no node names it: box stacking at 300 tuples + 2000 actions, every state
+    recorded, left 11 such states without a move when only nodes were starts."""
+    at_nodes = _node_states(task, roadmap, members)
+    loose = np.flatnonzero((roadmap.point_node < 0) & members.has_state.astype(bool))
+    places = at_nodes + [task.array_to_state(members.states[i]) for i in loose]
+    weight = np.concatenate([thinness(graph), np.ones(len(loose))])
+    return places, weight * np.array([s is not None for s in places])
 
 
 def spec_action(spec: ArraySpec, rng: np.random.Generator) -> np.ndarray:
@@ -142,7 +156,8 @@ def explore(
     roadmap = base = planner.planner.roadmap
     calibration = planner.planner.calibration
     members = load_members(model_dir, vae, data_dir)
-    node_states = _node_states(task, roadmap, members)
+    graph = shape_of(roadmap)  # (component, degree) of each node
+    places, weight = starts(task, roadmap, graph, members)
     config = read_vae_config(model_dir / "vae")
     size = int(config["model"]["image_size"])
     log = ExperienceLog(experience, task.spec, size, source="explore")
@@ -151,7 +166,6 @@ def explore(
     new: Members | None = None  # what was seen, encoded at the last growth
     rows: list[tuple] = []  # what was seen since
     tried = refused = grown_at = 0
-    graph = shape_of(roadmap)  # (component, degree) of each node
     sources = {"apn": 0, "seen": 0, "spec": 0}
     seen = members.actions[members.a == 1]
     step = action_step(members, roadmap.config.metric)
@@ -163,11 +177,9 @@ def explore(
     with make_world(task.name, size, appearance=appearance) as world:
         observer = Observer(world)  # images as the model is given them: registered
         while tried < cfg.actions:
-            startable = thinness(graph) * np.array([s is not None for s in node_states])
-            if not startable.sum():
+            if not weight.sum():
                 raise ValueError(f"{model_dir}: no roadmap node has a recorded state to start at")
-            start = int(rng.choice(roadmap.num_nodes, p=startable / startable.sum()))
-            state = world.reset(node_states[start], rng)
+            state = world.reset(places[rng.choice(len(places), p=weight / weight.sum())], rng)
             for _ in range(cfg.chain):
                 if tried >= cfg.actions:
                     break
@@ -224,8 +236,8 @@ def explore(
                     fresh = _encode(vae, task, rows)
                     new, rows = fresh if new is None else new + fresh, []
                     roadmap, _, everything, _ = grow(base, calibration, members, new, task)
-                    node_states = _node_states(task, roadmap, everything)
                     graph = shape_of(roadmap)
+                    places, weight = starts(task, roadmap, graph, everything)
                     shape = {"nodes": roadmap.num_nodes, "edges": len(roadmap.edges)}
                     shape["components"] = int(graph[0].max() + 1)
                     bar.set_postfix(shape)

@@ -116,7 +116,9 @@ def test_exploration_spends_its_budget_in_the_simulator_and_grows_a_version(mode
 
 
 def test_exploration_looks_again_after_each_executed_action(model, tmp_path):
-    cfg = ExploreConfig(actions=12, seed=2, grow_every=6, chain=2, seen_share=0.8, looks=2)
+    # (as above: at seed 2 all of 24 tries were refused since the explorer also starts from
+    # recorded images without a node; seed 1 records 3 moves)
+    cfg = ExploreConfig(actions=24, seed=1, grow_every=6, chain=2, seen_share=0.8, looks=2)
     explore(model, cfg, tmp_path / "exp", progress=False)
     data = load_dataset(tmp_path / "exp")
     moved = np.flatnonzero(data.a == 1)
@@ -187,3 +189,31 @@ def test_members_are_encoded_only_from_the_data_the_roadmap_was_built_on(
     generate(GenerateConfig(pairs=60, seed=2, image_size=32, workers=1), other, progress=False)
     with pytest.raises(ValueError, match="not the data it was built on"):
         load_members(model, vae, other)
+
+
+def test_exploration_starts_also_where_a_recorded_image_has_no_node():
+    from services.planner.members import Members
+    from services.sim.explore import shape_of, starts
+    from shared.tasks import get_task
+
+    # nodes 0 - 1 joined; tuple 0 a move 0 -> 1, tuple 1 a state seen standing still (no
+    # node), tuple 2 a robot's no-action pair without states (no node: not a start)
+    task = get_task("box_stacking")
+    rng = np.random.default_rng(0)
+    drawn = [task.sample_state(rng) for _ in range(3)]
+    states = np.stack([task.state_to_array(s) for s in (*drawn, drawn[2], drawn[0], drawn[0])])
+    roadmap = Roadmap(
+        config=RoadmapConfig(metric="l1"), epsilon=0.1, mu0=0.5, sigma0=0.5,
+        nodes=np.array([[0, 0], [5, 0]], np.float32), node_sizes=np.ones(2, np.int64),
+        edges=np.array([[0, 1]], np.int64), edge_weights=np.ones(1, np.int64),
+        point_node=np.array([0, 1, -1, -1, -1, -1], np.int64), twins=np.zeros((0, 2), np.int64),
+    )  # fmt: skip
+    members = Members(
+        points=np.zeros((6, 2), np.float32), errors=np.zeros((6, 3), np.float32),
+        actions=np.full((3, 4), -1, np.int8), a=np.array([1, 0, 0], np.uint8), states=states,
+        has_state=np.array([1, 1, 1, 1, 0, 0], np.uint8), experience=np.zeros(3, np.uint8),
+        keys=np.zeros(3, np.uint64),
+    )  # fmt: skip
+    places, weight = starts(task, roadmap, shape_of(roadmap), members)
+    assert places == [drawn[0], drawn[1], drawn[2], drawn[2]]
+    assert weight.tolist() == [0.25, 0.25, 1.0, 1.0]  # one edge in a group of two; alone
