@@ -269,8 +269,9 @@ class Registration:
         return found
 
     def _fit(self, found: dict[int, np.ndarray]) -> tuple[np.ndarray, float]:
-        """The homography from the found corners to the canonical ones (RANSAC), and the
-        RMS reprojection error of the corners through it."""
+        """The homography from the found corners to the canonical ones (least squares, or
+        RANSAC where a corner disagrees), and the RMS reprojection error of the corners
+        through it."""
         ids = sorted(found)
         source = np.concatenate([found[i] for i in ids])
         target = np.concatenate([self._corners[i] for i in ids])

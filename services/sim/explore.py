@@ -2,13 +2,12 @@
 
 The explorer uses no task rules to choose: it starts where the roadmap is thin (nodes in small
 components, nodes with few edges), in the state recorded for such a node or for a recorded
-image no node holds, and tries actions the
-APN proposes towards nodes it has no edge to, those with few edges first (most of them), or
-actions drawn from the task's action spec. The world executes what it can and refuses the
-rest, which is recorded as nothing changed. Every `grow_every` actions the roadmap grows in
-memory from what was seen, so that the next choices follow its new shape; at the end the
-experience grows the model's roadmap into a new version (`lsr roadmap grow`). The rules only
-judge the result afterwards (`lsr eval`).
+image no node holds, and tries actions the APN proposes towards nodes it has no edge to, those
+with few edges first (most of them), or actions drawn from the task's action spec. The world
+executes what it can and refuses the rest, which is recorded as nothing changed. Every
+`grow_every` actions the roadmap grows in memory from what was seen, so that the next choices
+follow its new shape; at the end the experience grows the model's roadmap into a new version
+(`lsr roadmap grow`). The rules only judge the result afterwards (`lsr eval`).
 """
 
 from __future__ import annotations
@@ -179,7 +178,7 @@ def explore(
         observer = Observer(world)  # images as the model is given them: registered
         while tried < cfg.actions:
             if not weight.sum():
-                raise ValueError(f"{model_dir}: no roadmap node has a recorded state to start at")
+                raise ValueError(f"{model_dir}: nothing recorded has a state to start at")
             state = world.reset(places[rng.choice(len(places), p=weight / weight.sum())], rng)
             for _ in range(cfg.chain):
                 if tried >= cfg.actions:
