@@ -215,5 +215,38 @@ def test_exploration_starts_also_where_a_recorded_image_has_no_node():
         keys=np.zeros(3, np.uint64),
     )  # fmt: skip
     places, weight = starts(task, roadmap, shape_of(roadmap), members)
-    assert places == [drawn[0], drawn[1], drawn[2], drawn[2]]
-    assert weight.tolist() == [0.25, 0.25, 1.0, 1.0]  # one edge in a group of two; alone
+    by_place = dict(zip(map(repr, places), weight.tolist(), strict=True))
+    # one edge in a group of two; the state seen standing still once, as a node alone
+    assert by_place == {repr(drawn[0]): 0.25, repr(drawn[1]): 0.25, repr(drawn[2]): 1.0}
+
+
+def test_exploration_weighs_a_state_by_its_best_joined_node():
+    from services.planner.members import Members
+    from services.sim.explore import shape_of, starts
+    from shared.tasks import get_task
+
+    # nodes 0 - 1 - 2 joined, node 3 alone; node 3 and a loose image show node 0's state (a
+    # twin split off by its looks): that state is joined, it asks as little as node 0
+    task = get_task("box_stacking")
+    rng = np.random.default_rng(1)
+    drawn = [task.sample_state(rng) for _ in range(3)]
+    order = (drawn[0], drawn[1], drawn[1], drawn[2], drawn[0], drawn[0])
+    states = np.stack([task.state_to_array(s) for s in order])
+    roadmap = Roadmap(
+        config=RoadmapConfig(metric="l1"), epsilon=0.1, mu0=0.5, sigma0=0.5,
+        nodes=np.array([[0, 0], [5, 0], [10, 0], [20, 0]], np.float32),
+        node_sizes=np.ones(4, np.int64), edges=np.array([[0, 1], [1, 2]], np.int64),
+        edge_weights=np.ones(2, np.int64), point_node=np.array([0, 1, 1, 2, 3, -1], np.int64),
+        twins=np.zeros((0, 2), np.int64),
+    )  # fmt: skip
+    members = Members(
+        points=np.zeros((6, 2), np.float32), errors=np.zeros((6, 3), np.float32),
+        actions=np.full((3, 4), -1, np.int8), a=np.array([1, 1, 0], np.uint8), states=states,
+        has_state=np.ones(6, np.uint8), experience=np.zeros(3, np.uint8),
+        keys=np.zeros(3, np.uint64),
+    )  # fmt: skip
+    places, weight = starts(task, roadmap, shape_of(roadmap), members)
+    by_place = dict(zip(map(repr, places), weight.tolist(), strict=True))
+    assert len(places) == 3
+    assert by_place[repr(drawn[0])] == by_place[repr(drawn[2])] == 1 / 6  # one edge, 3 nodes
+    assert by_place[repr(drawn[1])] == 1 / 9
