@@ -84,14 +84,14 @@ def as_role(access: Path, role: str) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def stack(tmp_path_factory, access):
+def stack(tmp_path_factory, access, patient):
     config = StackConfig(
         port=free_port(),
         zenoh_port=free_port(),
         models=(MODEL, CLOTH_MODEL, SHIRT_MODEL, ROPE_MODEL),
         log_dir=tmp_path_factory.mktemp("stack-logs"),
         zenoh_access=access,
-        env={"LSR_EXPERIENCE_DIR": str(tmp_path_factory.mktemp("experience"))},
+        env={**patient, "LSR_EXPERIENCE_DIR": str(tmp_path_factory.mktemp("experience"))},
     )
     with Stack(config) as running:
         running.start()

@@ -85,7 +85,7 @@ def test_plans_in_process_carry_the_declared_fields(data_model, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def served(data_model, tmp_path_factory):
+def served(data_model, tmp_path_factory, patient):
     model, data, _ = data_model
     assert model_services(model) == ("encoder", "planner", "apn")  # no simulator, no sim
     config = StackConfig(
@@ -93,6 +93,7 @@ def served(data_model, tmp_path_factory):
         zenoh_port=free_port(),
         models=(model,),
         log_dir=tmp_path_factory.mktemp("data-stack-logs"),
+        env=patient,
     )
     with Stack(config) as stack:
         stack.start()
