@@ -1,8 +1,8 @@
 """`lsr explore`: spend an action budget in the simulator where the roadmap is thin, and grow it.
 
-The explorer uses no task rules to choose: it starts where the roadmap is thin (nodes in small
-components, nodes with few edges), in the state recorded for such a node or for a recorded
-image no node holds, and tries actions the APN proposes towards nodes it has no edge to, those
+The explorer uses no task rules to choose: it starts from the recorded states where the roadmap
+is thin (a state whose best-joined node is in a small component or has few edges, or which no
+node holds), and tries actions the APN proposes towards nodes it has no edge to, those
 with few edges first (most of them), or actions drawn from the task's action spec. The world
 executes what it can and refuses the rest, which is recorded as nothing changed. Every
 `grow_every` actions the roadmap grows in memory from what was seen, so that the next choices
