@@ -87,7 +87,7 @@ def starts(
     largest component showed a state it held) and two states stayed joined only to each other
     at three explore seeds of four."""
     labels = state_labels(roadmap, members, task)
-    held = labels.members > 0  # a node whose images came without states (a robot's) is not
+    held = labels.members > 0  # nodes with a recorded state (a robot's images come without)
     loose = np.flatnonzero((roadmap.point_node < 0) & members.has_state.astype(bool))
     arrays = np.concatenate([labels.states[held], members.states[loose]])
     own = np.concatenate([thinness(graph)[held], np.ones(len(loose))])
