@@ -191,62 +191,61 @@ def test_members_are_encoded_only_from_the_data_the_roadmap_was_built_on(
         load_members(model, vae, other)
 
 
-def test_exploration_starts_also_where_a_recorded_image_has_no_node():
+def _starts_by_state(
+    order: list, point_node: list[int], edges: list[list[int]], a: list[int], has_state: list[int]
+) -> dict[str, float]:
+    """`starts` on a roadmap of 2-D nodes and members showing box states `order` (two images a
+    tuple), keyed by each start's repr."""
     from services.planner.members import Members
     from services.sim.explore import shape_of, starts
     from shared.tasks import get_task
 
-    # nodes 0 - 1 joined; tuple 0 a move 0 -> 1, tuple 1 a state seen standing still (no
-    # node), tuple 2 a robot's no-action pair without states (no node: not a start)
     task = get_task("box_stacking")
-    rng = np.random.default_rng(0)
-    drawn = [task.sample_state(rng) for _ in range(3)]
-    states = np.stack([task.state_to_array(s) for s in (*drawn, drawn[2], drawn[0], drawn[0])])
+    k, n = max(point_node) + 1, len(a)
     roadmap = Roadmap(
         config=RoadmapConfig(metric="l1"), epsilon=0.1, mu0=0.5, sigma0=0.5,
-        nodes=np.array([[0, 0], [5, 0]], np.float32), node_sizes=np.ones(2, np.int64),
-        edges=np.array([[0, 1]], np.int64), edge_weights=np.ones(1, np.int64),
-        point_node=np.array([0, 1, -1, -1, -1, -1], np.int64), twins=np.zeros((0, 2), np.int64),
+        nodes=np.arange(2 * k, dtype=np.float32).reshape(k, 2) * 5,
+        node_sizes=np.ones(k, np.int64), edges=np.array(edges, np.int64).reshape(-1, 2),
+        edge_weights=np.ones(len(edges), np.int64), point_node=np.array(point_node, np.int64),
+        twins=np.zeros((0, 2), np.int64),
     )  # fmt: skip
     members = Members(
-        points=np.zeros((6, 2), np.float32), errors=np.zeros((6, 3), np.float32),
-        actions=np.full((3, 4), -1, np.int8), a=np.array([1, 0, 0], np.uint8), states=states,
-        has_state=np.array([1, 1, 1, 1, 0, 0], np.uint8), experience=np.zeros(3, np.uint8),
-        keys=np.zeros(3, np.uint64),
+        points=np.zeros((2 * n, 2), np.float32), errors=np.zeros((2 * n, 3), np.float32),
+        actions=np.full((n, 4), -1, np.int8), a=np.array(a, np.uint8),
+        states=np.stack([task.state_to_array(s) for s in order]),
+        has_state=np.array(has_state, np.uint8), experience=np.zeros(n, np.uint8),
+        keys=np.zeros(n, np.uint64),
     )  # fmt: skip
     places, weight = starts(task, roadmap, shape_of(roadmap), members)
-    by_place = dict(zip(map(repr, places), weight.tolist(), strict=True))
+    return dict(zip(map(repr, places), weight.tolist(), strict=True))
+
+
+def test_exploration_starts_also_where_a_recorded_image_has_no_node():
+    from shared.tasks import get_task
+
+    # nodes 0 - 1 joined; tuple 0 a move 0 -> 1, tuple 1 a state seen standing still (no
+    # node), tuple 2 a robot's no-action pair without states (no node: not a start)
+    rng = np.random.default_rng(0)
+    drawn = [get_task("box_stacking").sample_state(rng) for _ in range(3)]
+    by_place = _starts_by_state(
+        [*drawn, drawn[2], drawn[0], drawn[0]], [0, 1, -1, -1, -1, -1], [[0, 1]], [1, 0, 0],
+        [1, 1, 1, 1, 0, 0],
+    )  # fmt: skip
     # one edge in a group of two; the state seen standing still once, as a node alone
     assert by_place == {repr(drawn[0]): 0.25, repr(drawn[1]): 0.25, repr(drawn[2]): 1.0}
 
 
 def test_exploration_weighs_a_state_by_its_best_joined_node():
-    from services.planner.members import Members
-    from services.sim.explore import shape_of, starts
     from shared.tasks import get_task
 
     # nodes 0 - 1 - 2 joined, node 3 alone; node 3 and a loose image show node 0's state (a
     # twin split off by its looks): that state is joined, it asks as little as node 0
-    task = get_task("box_stacking")
     rng = np.random.default_rng(1)
-    drawn = [task.sample_state(rng) for _ in range(3)]
-    order = (drawn[0], drawn[1], drawn[1], drawn[2], drawn[0], drawn[0])
-    states = np.stack([task.state_to_array(s) for s in order])
-    roadmap = Roadmap(
-        config=RoadmapConfig(metric="l1"), epsilon=0.1, mu0=0.5, sigma0=0.5,
-        nodes=np.array([[0, 0], [5, 0], [10, 0], [20, 0]], np.float32),
-        node_sizes=np.ones(4, np.int64), edges=np.array([[0, 1], [1, 2]], np.int64),
-        edge_weights=np.ones(2, np.int64), point_node=np.array([0, 1, 1, 2, 3, -1], np.int64),
-        twins=np.zeros((0, 2), np.int64),
+    drawn = [get_task("box_stacking").sample_state(rng) for _ in range(3)]
+    by_place = _starts_by_state(
+        [drawn[0], drawn[1], drawn[1], drawn[2], drawn[0], drawn[0]], [0, 1, 1, 2, 3, -1],
+        [[0, 1], [1, 2]], [1, 1, 0], [1] * 6,
     )  # fmt: skip
-    members = Members(
-        points=np.zeros((6, 2), np.float32), errors=np.zeros((6, 3), np.float32),
-        actions=np.full((3, 4), -1, np.int8), a=np.array([1, 1, 0], np.uint8), states=states,
-        has_state=np.ones(6, np.uint8), experience=np.zeros(3, np.uint8),
-        keys=np.zeros(3, np.uint64),
-    )  # fmt: skip
-    places, weight = starts(task, roadmap, shape_of(roadmap), members)
-    by_place = dict(zip(map(repr, places), weight.tolist(), strict=True))
-    assert len(places) == 3
+    assert len(by_place) == 3
     assert by_place[repr(drawn[0])] == by_place[repr(drawn[2])] == 1 / 6  # one edge, 3 nodes
     assert by_place[repr(drawn[1])] == 1 / 9
