@@ -262,6 +262,25 @@ def plot(task: str, records: list[dict[str, Any]], path: Path, looks: int) -> No
     fig.savefig(path, dpi=110)
 
 
+def print_table(records: list[dict[str, Any]], looks: int) -> None:
+    """Every model each point measured: as recorded, grown by exploring, trained again."""
+    print("tuples seed model               nodes  All(ref) known  apn%  loop%  train_min")
+    for r in records:
+        for kind in ("defaults", *kinds(looks)):
+            if kind not in r:
+                continue
+            d = r[kind]
+            cells = [d["table1_refusals_counted"][0] if d["table1_refusals_counted"] else None,
+                     d["known_images"], d["apn_right"], d.get("closed_loop")]  # fmt: skip
+            text = " ".join("    -" if v is None else f"{v:5.1f}" for v in cells)
+            steps = (
+                ("train_model",) if kind == "defaults" else (f"train_model_{kind}", f"train_{kind}")
+            )
+            wall = next((r["times"][s]["wall"] for s in steps if s in r["times"]), None)
+            minutes = "       -" if wall is None else f"{wall / 60:8.1f}"
+            print(f"{r['tuples']:6d} {r['seed']:4d} {kind:18s} {d['nodes']:5d} {text} {minutes}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--task", default="box_stacking")
@@ -310,14 +329,7 @@ def main() -> None:
             print(json.dumps({k: records[-1][k] for k in ("tuples", "seed", "defaults")}))
     if records:
         (args.out / "RESULTS.json").write_text(json.dumps(records, indent=1) + "\n")
-    print("tuples seed nodes  All(ref) known  apn%  loop%  train_min")
-    for r in records:
-        d = r["defaults"]
-        cells = [d["table1_refusals_counted"][0] if d["table1_refusals_counted"] else None,
-                 d["known_images"], d["apn_right"], d.get("closed_loop")]  # fmt: skip
-        text = " ".join("    -" if v is None else f"{v:5.1f}" for v in cells)
-        minutes = r["times"]["train_model"]["wall"] / 60
-        print(f"{r['tuples']:6d} {r['seed']:4d} {d['nodes']:5d} {text} {minutes:8.1f}")
+    print_table(records, args.looks)
     if args.figure:
         if not kept.exists():
             sys.exit(f"{kept}: no measured points of {args.task} to draw (run some --sizes)")
