@@ -195,7 +195,7 @@ def _starts_by_state(
     order: list, point_node: list[int], edges: list[list[int]], a: list[int], has_state: list[int]
 ) -> dict[str, float]:
     """`starts` on a roadmap of 2-D nodes and members showing box states `order` (two images a
-    tuple), keyed by each start's repr."""
+    tuple), keyed by each start's repr; no state may start twice."""
     from services.planner.members import Members
     from services.sim.explore import shape_of, starts
     from shared.tasks import get_task
@@ -217,7 +217,9 @@ def _starts_by_state(
         keys=np.zeros(n, np.uint64),
     )  # fmt: skip
     places, weight = starts(task, roadmap, shape_of(roadmap), members)
-    return dict(zip(map(repr, places), weight.tolist(), strict=True))
+    by_place = dict(zip(map(repr, places), weight.tolist(), strict=True))
+    assert len(by_place) == len(places)  # each recorded state once
+    return by_place
 
 
 def test_exploration_starts_also_where_a_recorded_image_has_no_node():
