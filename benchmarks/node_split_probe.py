@@ -1,10 +1,10 @@
 """Which roadmap nodes hold two things: a probe for a node split, on a model's members.
 
-Per node: whether nearly the same action from it (pick and place within --tol px, the same
-kind) reaches two different nodes, and whether its images fall in two groups far apart (2-means
-in the latent metric; gap = the closest pair across the groups over the node's median
-nearest-neighbour distance). True states only name what a node holds (states, view purity).
-Prints the nodes with the widest gaps.
+Per node: whether nearly the same action from it (its pixel fields within --tol px, the task's
+other fields equal) reaches two different nodes, and whether its images fall in two groups far
+apart (2-means in the latent metric; gap = the closest pair across the groups over the node's
+median nearest-neighbour distance). True states only name what a node holds (states, view
+purity). Prints the nodes with the widest gaps.
 
     python benchmarks/node_split_probe.py MODEL [--tol 12] [--top 8]
 """
@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 from safetensors.numpy import load_file
+
+from shared.tasks import get_task
 
 
 def two_means(points: np.ndarray, rng: np.random.Generator, starts: int = 5) -> np.ndarray:
@@ -36,18 +38,22 @@ def two_means(points: np.ndarray, rng: np.random.Generator, starts: int = 5) -> 
     return best[1]
 
 
-def conflicting(moves: list[int], target: np.ndarray, actions: np.ndarray, tol: int) -> bool:
-    """Whether two of `moves` (tuple indices) do nearly the same action and reach two nodes."""
+def conflicting(moves: list[int], target: np.ndarray, actions: np.ndarray, tol: np.ndarray) -> bool:
+    """Whether two of `moves` (tuple indices) do nearly the same action (each field within
+    `tol`) and reach two nodes."""
     for k, i in enumerate(moves):
         for j in moves[k + 1 :]:
-            near = np.abs(actions[i, :-1] - actions[j, :-1]).max() <= tol
-            if target[i] != target[j] and actions[i, -1] == actions[j, -1] and near:
+            near = bool((np.abs(actions[i] - actions[j]) <= tol).all())
+            if target[i] != target[j] and near:
                 return True
     return False
 
 
 def probe(model: Path, tol: int) -> list[dict]:
     folder = model / "roadmap"
+    task = get_task(json.loads((model / "recipe.json").read_text())["figures"]["task"])
+    spec = task.spec.action
+    fields = np.array([tol if name in spec.pixels else 0 for name in spec.names])
     members = load_file(str(folder / "members.safetensors"))
     roadmap = load_file(str(folder / "roadmap.safetensors"))
     labels = {d["node"]: d for d in json.loads((folder / "labels.json").read_text())}
@@ -75,7 +81,7 @@ def probe(model: Path, tol: int) -> list[dict]:
                 "images": len(held),
                 "states": len(np.unique(members["states"][held], axis=0)),
                 "view_purity": labels.get(n, {}).get("purity", float("nan")),
-                "conflict": conflicting(moves, target, actions, tol),
+                "conflict": conflicting(moves, target, actions, fields),
                 "smaller_group": smaller,
                 "gap": cross / spacing if spacing > 0 else float("inf"),
             }
@@ -86,7 +92,7 @@ def probe(model: Path, tol: int) -> list[dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("model", type=Path)
-    parser.add_argument("--tol", type=int, default=12, help="action fields within this")
+    parser.add_argument("--tol", type=int, default=12, help="pixel fields of an action within this")
     parser.add_argument("--top", type=int, default=8)
     args = parser.parse_args()
     rows = probe(args.model, args.tol)
