@@ -1,12 +1,14 @@
 """Which roadmap nodes hold two things: a probe for a node split, on a model's members.
 
 Per node: whether nearly the same action from it (its pixel fields within --tol px, the task's
-other fields equal) reaches two different nodes, and whether its images fall in two groups far
-apart (2-means in the latent metric; gap = the closest pair across the groups over the node's
-median nearest-neighbour distance). True states only name what a node holds (states, view
-purity). Prints the nodes with the widest gaps.
+other fields equal) reaches two different nodes (conflicting pairs), and whether its images fall
+in two groups far apart, asked two ways: 2-means in the latent metric (gap = the closest pair
+across the groups over the node's median nearest-neighbour distance), and the node's minimum
+spanning tree cut at its longest edge (cut = that edge over the tree's median edge; agree = the
+share of conflicting pairs whose two starts the cut puts apart). True states only name what a
+node holds (states, view purity). Prints the nodes first by --by.
 
-    python benchmarks/node_split_probe.py MODEL [--tol 12] [--top 8]
+    python benchmarks/node_split_probe.py MODEL [--tol 12] [--top 8] [--by gap|cut]
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from safetensors.numpy import load_file
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from shared.tasks import get_task
 
@@ -38,15 +41,29 @@ def two_means(points: np.ndarray, rng: np.random.Generator, starts: int = 5) -> 
     return best[1]
 
 
-def conflicting(moves: list[int], target: np.ndarray, actions: np.ndarray, tol: np.ndarray) -> bool:
-    """Whether two of `moves` (tuple indices) do nearly the same action (each field within
+def conflicting(
+    moves: list[int], target: np.ndarray, actions: np.ndarray, tol: np.ndarray
+) -> list[tuple[int, int]]:
+    """The pairs of `moves` (tuple indices) that do nearly the same action (each field within
     `tol`) and reach two nodes."""
-    for k, i in enumerate(moves):
-        for j in moves[k + 1 :]:
-            near = bool((np.abs(actions[i] - actions[j]) <= tol).all())
-            if target[i] != target[j] and near:
-                return True
-    return False
+    return [
+        (i, j)
+        for k, i in enumerate(moves)
+        for j in moves[k + 1 :]
+        if target[i] != target[j] and bool((np.abs(actions[i] - actions[j]) <= tol).all())
+    ]
+
+
+def tree_cut(distances: np.ndarray) -> tuple[np.ndarray, float]:
+    """The two groups the minimum spanning tree leaves when cut at its longest edge, and that
+    edge over the tree's median edge."""
+    tree = minimum_spanning_tree(distances + 1e-12).toarray()
+    edges = np.argwhere(tree > 0)
+    weights = tree[tree > 0]
+    longest = int(np.argmax(weights))
+    tree[tuple(edges[longest])] = 0
+    _, group = connected_components(tree, directed=False)
+    return group, float(weights[longest] / np.median(weights))
 
 
 def probe(model: Path, tol: int) -> list[dict]:
@@ -69,21 +86,29 @@ def probe(model: Path, tol: int) -> list[dict]:
             continue
         x = points[held]
         d = np.abs(x[:, None] - x[None]).sum(-1)
+        cut, ratio = tree_cut(d)
         np.fill_diagonal(d, np.inf)
         spacing = float(np.median(d.min(1)))
         group = two_means(x, rng)
         smaller = int(min((group == 0).sum(), (group == 1).sum()))
         cross = float(d[group == 0][:, group == 1].min()) if smaller else 0.0
         moves = [int(t) for t in moved if node[2 * t] == n and target[t] >= 0]
+        pairs = conflicting(moves, target, actions, fields)
+        side = dict(zip(held.tolist(), cut.tolist(), strict=True))
         rows.append(
             {
                 "node": n,
                 "images": len(held),
                 "states": len(np.unique(members["states"][held], axis=0)),
                 "view_purity": labels.get(n, {}).get("purity", float("nan")),
-                "conflict": conflicting(moves, target, actions, fields),
+                "conflicting": len(pairs),
                 "smaller_group": smaller,
                 "gap": cross / spacing if spacing > 0 else float("inf"),
+                "cut": ratio,
+                "cut_smaller": int(np.bincount(cut).min()),
+                "agree": float(np.mean([side[2 * i] != side[2 * j] for i, j in pairs]))
+                if pairs
+                else 0.0,
             }
         )
     return rows
@@ -94,15 +119,19 @@ def main() -> None:
     parser.add_argument("model", type=Path)
     parser.add_argument("--tol", type=int, default=12, help="pixel fields of an action within this")
     parser.add_argument("--top", type=int, default=8)
+    parser.add_argument("--by", choices=("gap", "cut"), default="gap", help="cut: agree x cut")
     args = parser.parse_args()
     rows = probe(args.model, args.tol)
-    for r in sorted(rows, key=lambda r: -r["gap"])[: args.top]:
+    order = (lambda r: -r["gap"]) if args.by == "gap" else (lambda r: -r["agree"] * r["cut"])
+    for r in sorted(rows, key=order)[: args.top]:
         print(
             f"node {r['node']:3d} images {r['images']:4d} states {r['states']} view purity "
-            f"{r['view_purity']:.2f} conflict {r['conflict']!s:5s} smaller group "
-            f"{r['smaller_group']:4d} gap {r['gap']:.1f}"
+            f"{r['view_purity']:.2f} conflicting {r['conflicting']:4d} | 2-means smaller "
+            f"{r['smaller_group']:4d} gap {r['gap']:5.1f} | tree cut smaller "
+            f"{r['cut_smaller']:4d} cut {r['cut']:5.1f} agree {r['agree']:.2f}"
         )
-    print(f"nodes {len(rows)}, with conflicting actions {sum(r['conflict'] for r in rows)}")
+    conflicted = sum(r["conflicting"] > 0 for r in rows)
+    print(f"nodes {len(rows)}, with conflicting actions {conflicted}")
 
 
 if __name__ == "__main__":
