@@ -20,8 +20,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from node_split_probe import conflicting, tree_cut
 from safetensors.numpy import load_file
-from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 import services.planner.roadmap as roadmap_module
 from services.cli import main as lsr
@@ -42,22 +42,11 @@ def split(
     for region in range(int(labels.max()) + 1):
         held = np.flatnonzero(labels == region)
         starts = [int(t) for t in moved if labels[2 * t] == region]
-        pairs = [
-            (i, j)
-            for k, i in enumerate(starts)
-            for j in starts[k + 1 :]
-            if labels[2 * i + 1] != labels[2 * j + 1]
-            and bool((np.abs(actions[i] - actions[j]) <= tol).all())
-        ]
+        pairs = conflicting(starts, labels[1::2], actions, tol)
         if not pairs or len(held) < 2 * side:
             continue
         x = points[held]
-        tree = minimum_spanning_tree(np.abs(x[:, None] - x[None]).sum(-1) + 1e-12).toarray()
-        edges, weights = np.argwhere(tree > 0), tree[tree > 0]
-        longest = int(np.argmax(weights))
-        ratio = float(weights[longest] / np.median(weights))
-        tree[tuple(edges[longest])] = 0
-        _, group = connected_components(tree, directed=False)
+        group, ratio = tree_cut(np.abs(x[:, None] - x[None]).sum(-1))
         where = dict(zip(held.tolist(), group.tolist(), strict=True))
         apart = all(where[2 * i] != where[2 * j] for i, j in pairs)
         sizes = np.bincount(group)
