@@ -3,10 +3,10 @@
 Per node: whether nearly the same action from it (its pixel fields within --tol px, the task's
 other fields equal) reaches two different nodes (conflicting pairs), and whether its images fall
 in two groups far apart, asked two ways: 2-means in the latent metric (gap = the closest pair
-across the groups over the node's median nearest-neighbour distance), and the node's minimum
-spanning tree cut at its longest edge (cut = that edge over the tree's median edge; agree = the
-share of conflicting pairs whose two starts the cut puts apart). True states only name what a
-node holds (states, view purity). Prints the nodes first by --by.
+across the groups over the node's median nearest-neighbour distance, in the roadmap's metric),
+and the node's minimum spanning tree cut at its longest edge (cut = that edge over the tree's
+median edge; agree = the share of conflicting pairs whose two starts the cut puts apart). True
+states only name what a node holds (states, view purity). Prints the nodes first by --by.
 
     python benchmarks/node_split_probe.py MODEL [--tol 12] [--top 8] [--by gap|cut]
 """
@@ -21,6 +21,7 @@ import numpy as np
 from safetensors.numpy import load_file
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
+from services.planner.regions import pair_distances
 from shared.tasks import get_task
 
 
@@ -66,12 +67,23 @@ def tree_cut(distances: np.ndarray) -> tuple[np.ndarray, float]:
     return group, float(weights[longest] / np.median(weights))
 
 
+def read_model(model: Path, tol: int) -> tuple[np.ndarray, str, dict[str, np.ndarray]]:
+    """(each action field's tolerance: `tol` for pixels, 0 for the task's other fields; the
+    roadmap's metric; the members) of a built model."""
+    spec = get_task(json.loads((model / "recipe.json").read_text())["figures"]["task"]).spec.action
+    fields = np.array([tol if name in spec.pixels else 0 for name in spec.names])
+    metric = json.loads((model / "roadmap" / "roadmap.json").read_text())["config"]["metric"]
+    return fields, metric, load_file(str(model / "roadmap" / "members.safetensors"))
+
+
+def all_pairs(points: np.ndarray, metric: str) -> np.ndarray:
+    """The distance matrix of `points`."""
+    return pair_distances(points[:, None], points[None], metric)
+
+
 def probe(model: Path, tol: int) -> list[dict]:
     folder = model / "roadmap"
-    task = get_task(json.loads((model / "recipe.json").read_text())["figures"]["task"])
-    spec = task.spec.action
-    fields = np.array([tol if name in spec.pixels else 0 for name in spec.names])
-    members = load_file(str(folder / "members.safetensors"))
+    fields, metric, members = read_model(model, tol)
     roadmap = load_file(str(folder / "roadmap.safetensors"))
     labels = {d["node"]: d for d in json.loads((folder / "labels.json").read_text())}
     node, points = roadmap["point_node"], members["points"]
@@ -85,7 +97,7 @@ def probe(model: Path, tol: int) -> list[dict]:
         if len(held) < 4:
             continue
         x = points[held]
-        d = np.abs(x[:, None] - x[None]).sum(-1)
+        d = all_pairs(x, metric)
         cut, ratio = tree_cut(d)
         np.fill_diagonal(d, np.inf)
         spacing = float(np.median(d.min(1)))

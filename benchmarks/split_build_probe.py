@@ -2,11 +2,12 @@
 
 The split (not in the product; measured here first): after Algorithm 1's phase 2, a region whose
 moves include nearly the same action (pixel fields within --tol px, the task's other fields
-equal) reaching two regions is cut at the longest edge of its minimum spanning tree (L1) when
-that cut puts the starts of every such pair apart, the edge is at least --cut times the tree's
-median edge and each side holds at least --side images; the smaller side becomes a region of its
-own. Everything else is `lsr build-roadmap` with its defaults. Copies MODEL to OUT with the new
-roadmap and prints the splits; then `lsr eval vfm --model OUT --test T`.
+equal) reaching two regions is cut at the longest edge of its minimum spanning tree (in the
+roadmap's metric) when that cut puts the starts of every such pair apart, the edge is at least
+--cut times the tree's median edge and each side holds at least --side images; the smaller
+side becomes a region of its own. Everything else is `lsr build-roadmap` with its defaults.
+Copies MODEL to OUT with the new roadmap and prints the splits; then `lsr eval vfm --model OUT
+--test T`.
 
     python benchmarks/split_build_probe.py --model M --data TRAIN --out OUT
 """
@@ -14,18 +15,15 @@ roadmap and prints the splits; then `lsr eval vfm --model OUT --test T`.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
-from node_split_probe import conflicting, tree_cut
-from safetensors.numpy import load_file
+from node_split_probe import all_pairs, conflicting, read_model, tree_cut
 
 import services.planner.roadmap as roadmap_module
 from services.cli import main as lsr
-from shared.tasks import get_task
 
 
 def split(
@@ -34,6 +32,7 @@ def split(
     moved: np.ndarray,
     actions: np.ndarray,
     tol: np.ndarray,
+    metric: str,
     cut: float,
     side: int,
 ) -> tuple[np.ndarray, list[dict]]:
@@ -46,7 +45,7 @@ def split(
         if not pairs or len(held) < 2 * side:
             continue
         x = points[held]
-        group, ratio = tree_cut(np.abs(x[:, None] - x[None]).sum(-1))
+        group, ratio = tree_cut(all_pairs(x, metric))
         where = dict(zip(held.tolist(), group.tolist(), strict=True))
         apart = all(where[2 * i] != where[2 * j] for i, j in pairs)
         sizes = np.bincount(group)
@@ -68,11 +67,7 @@ def main() -> None:
     parser.add_argument("--cut", type=float, default=3.0)
     parser.add_argument("--side", type=int, default=3)
     args = parser.parse_args()
-    recipe = json.loads((args.model / "recipe.json").read_text())
-    task = get_task(recipe["figures"]["task"])
-    members = load_file(str(args.model / "roadmap" / "members.safetensors"))
-    spec = task.spec.action
-    tol = np.array([args.tol if name in spec.pixels else 0 for name in spec.names])
+    tol, _, members = read_model(args.model, args.tol)  # the cut takes the build's metric
     moved = np.flatnonzero(members["a"] == 1)
     actions = members["actions"].astype(int)
     found: list[dict] = []
@@ -82,7 +77,9 @@ def main() -> None:
         labels, info = regions(points, epsilon, metric)
         if len(labels) != 2 * len(members["a"]):
             sys.exit(f"{args.model} was not built on {args.data}: its members differ in number")
-        labels, done = split(labels, np.asarray(points), moved, actions, tol, args.cut, args.side)
+        labels, done = split(
+            labels, np.asarray(points), moved, actions, tol, metric, args.cut, args.side
+        )
         found.extend(done)
         return labels, info
 
